@@ -1,0 +1,28 @@
+# drive-commission: `make run` and `make test` set everything up on a machine with Python and make.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+OUT    ?= commissioning/make-run
+
+.PHONY: run test bench clean
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e ".[test]"
+	@touch $(STAMP)
+
+## run: a full commissioning against the built-in simulated drive
+run: $(STAMP)
+	$(BIN)/commission --sim --config configs/default.yaml --out $(OUT)
+
+## test: the test suite
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+## bench: accuracy and speed benchmarks (figures printed, not asserted)
+bench: $(STAMP)
+	@for f in bench/bench_*.py; do echo "== $$f"; $(BIN)/python $$f || exit 1; done
+
+clean:
+	rm -rf $(VENV) build *.egg-info src/*.egg-info .pytest_cache commissioning

@@ -1,0 +1,239 @@
+"""`commission`: the command line. Thin: parse, load the config, call the sequencer.
+
+Every CommissionError ends as one line on stderr and a non-zero exit code; no
+traceback (``-v`` shows the cause chain).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from collections.abc import Sequence
+from datetime import datetime
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .config import Config, load_config
+from .exceptions import Aborted, CommissionError, LogFormatError
+from .recording import Recording
+
+EPILOG = """\
+modes:
+  commission --sim                       full experiment on the built-in simulated drive
+  commission --port can0                 CANopen drive on SocketCAN can0 (CiA 402)
+  commission --replay run.mcap --out D   identify again from a log (.mcap or .csv)
+
+outputs (in --out DIR, default ./commissioning/<date-time>/):
+  run.mcap       every sample sent and measured, the config and the drive's identity
+
+exit codes: 0 ok, 1 other error, 2 config, 3 input file, 4 drive, 5 safety limit, 6 identification,
+            130 interrupted
+"""
+
+
+def _version() -> str:
+    try:
+        return version("drive-commission")
+    except PackageNotFoundError:  # pragma: no cover
+        return "0+unknown"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="commission",
+        description="Commission a servo axis: inject a chirp torque, log it to MCAP, "
+        "identify the two-mass model and its gear backlash.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    src = p.add_argument_group("drive or input (choose one)")
+    x = src.add_mutually_exclusive_group(required=True)
+    x.add_argument("--sim", action="store_true", help="use the built-in simulated drive (plant from the config's 'sim' section)")
+    x.add_argument("--port", metavar="PORT", help="drive connection: a CAN channel (can0) or a serial device (/dev/ttyUSB0)")
+    x.add_argument("--replay", metavar="FILE", type=Path, help="no drive: read a recorded run (.mcap or .csv) and identify it")
+    link = p.add_argument_group("link options (with --port)")
+    link.add_argument("--interface", metavar="NAME", help="python-can interface for CAN ports (default: socketcan)")
+    link.add_argument("--bitrate", metavar="BIT/S", type=int, help="CAN bit rate (default: the adapter's)")
+    link.add_argument("--node-id", metavar="ID", type=int, help="CANopen node id of the drive")
+    link.add_argument("--protocol", choices=["canopen", "modbus"], help="protocol on the port (default: canopen for CAN)")
+    link.add_argument("--drive", metavar="NAME", help="drive description under drivers/ (e.g. yaskawa-sigma7)")
+    run = p.add_argument_group("run")
+    run.add_argument("--config", metavar="FILE", type=Path, help="commissioning recipe (YAML); default: the paper's experiment (configs/default.yaml)")
+    run.add_argument("--out", metavar="DIR", type=Path, help="output folder (default: ./commissioning/<date-time>/)")
+    run.add_argument("--seed", type=int, help="seed of the simulated plant's noise (overrides sim.seed)")
+    out = p.add_argument_group("output")
+    out.add_argument("--json", action="store_true", help="print one JSON document on stdout and nothing else")
+    out.add_argument("-v", "--verbose", action="store_true", help="more detail; show the cause of errors")
+    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    return p
+
+
+def _default_out_dir() -> Path:
+    base = Path("commissioning") / datetime.now().strftime("%Y%m%d-%H%M%S")
+    out, n = base, 1
+    while out.exists():
+        n += 1
+        out = base.with_name(f"{base.name}-{n}")
+    return out
+
+
+def read_log(path: Path) -> Recording:
+    """A Recording from a .mcap or .csv file (truncated MCAP: what was written, with a warning)."""
+    suffix = path.suffix.lower()
+    if suffix == ".mcap":
+        from .mcaplog import read_recording
+
+        return read_recording(path)
+    if suffix == ".csv":
+        from .csvlog import read_csv
+
+        return read_csv(path)
+    raise LogFormatError(f"{path}: unknown log format '{suffix or '(none)'}': expected .mcap or .csv")
+
+
+def _recording_summary(rec: Recording) -> dict[str, Any]:
+    return {
+        "samples": len(rec),
+        "sample_rate_hz": rec.sample_rate_hz,
+        "duration_s": rec.duration_s,
+        "signals": [name for name, _ in rec.signals()],
+        "peak_torque_nm": float(np.max(np.abs(rec.torque_ref))),
+        "peak_motor_velocity_rad_s": float(np.max(np.abs(rec.motor_velocity))),
+        "drive": rec.drive.to_dict(),
+        "status": rec.metadata.get("status", "unknown"),
+    }
+
+
+class _Terminal:
+    """Progress bar and summary on a terminal (rich); silent in --json mode."""
+
+    def __init__(self, quiet: bool, verbose: bool) -> None:
+        from rich.console import Console
+
+        self.quiet = quiet
+        self.verbose = verbose
+        self.console = Console(stderr=True, quiet=quiet, highlight=False)
+        self._progress: Any = None
+        self._tasks: dict[str, Any] = {}
+
+    def say(self, text: str) -> None:
+        self.console.print(text)
+
+    def progress(self, label: str, done: int, total: int) -> None:
+        if self.quiet:
+            return
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        if self._progress is None:
+            self._progress = Progress(
+                TextColumn("{task.description:<12}"), BarColumn(), TextColumn("{task.percentage:>5.1f} %"),
+                TimeElapsedColumn(), console=self.console, transient=not self.console.is_terminal,
+            )
+            self._progress.start()
+        if label not in self._tasks:
+            self._tasks[label] = self._progress.add_task(label, total=total)
+        self._progress.update(self._tasks[label], completed=done, total=total)
+
+    def close(self) -> None:
+        if self._progress is not None:
+            self._progress.stop()
+            self._progress = None
+
+    def summary(self, title: str, rows: list[tuple[str, str]]) -> None:
+        from rich.table import Table
+
+        table = Table(title=title, show_header=False, title_justify="left")
+        table.add_column(style="bold")
+        table.add_column()
+        for k, v in rows:
+            table.add_row(k, v)
+        self.console.print(table)
+
+
+def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
+    config: Config = load_config(args.config)
+    out_dir = args.out or _default_out_dir()
+    result: dict[str, Any] = {"out_dir": str(out_dir), "files": []}
+
+    if args.replay is not None:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            recording = read_log(args.replay)
+        for w in caught:
+            term.say(f"[yellow]warning:[/] {w.message}")
+            result.setdefault("warnings", []).append(str(w.message))
+        result["source"] = str(args.replay)
+        result["recording"] = _recording_summary(recording)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        term.summary(f"replay of {args.replay}", _rows(result))
+        return result
+
+    from .drive import open_drive
+    from .sequencer import Sequencer
+
+    sim_plant = dict(config.sim)
+    if args.seed is not None:
+        sim_plant["seed"] = args.seed
+    drive = open_drive(
+        sim=args.sim, port=args.port, interface=args.interface, protocol=args.protocol,
+        sim_plant=sim_plant if args.sim else None,
+        **{k: v for k, v in (("bitrate", args.bitrate), ("node_id", args.node_id), ("drive", args.drive)) if v is not None},
+    )
+    with drive:
+        term.say(f"drive: {drive.info.vendor} {drive.info.product} ({drive.info.backend})")
+        outcome = Sequencer(config, drive, out_dir, progress=term.progress).run()
+        term.close()
+    result["source"] = drive.info.backend
+    result["recording"] = _recording_summary(outcome.recording)
+    result["envelope"] = {
+        "peak_torque_nm": outcome.envelope.peak_torque_nm,
+        "predicted_peak_speed_rad_s": outcome.envelope.predicted_peak_speed_rad_s,
+        "predicted_peak_travel_rad": outcome.envelope.predicted_peak_travel_rad,
+    }
+    result["files"] = [str(f) for f in outcome.files]
+    term.summary("commissioning run", _rows(result))
+    return result
+
+
+def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
+    rec = result["recording"]
+    rows = [
+        ("source", str(result.get("source"))),
+        ("samples", f"{rec['samples']} at {rec['sample_rate_hz']:g} Hz ({rec['duration_s']:g} s)"),
+        ("signals", ", ".join(rec["signals"])),
+        ("peak torque", f"{rec['peak_torque_nm']:.4g} N·m"),
+        ("peak motor speed", f"{rec['peak_motor_velocity_rad_s']:.4g} rad/s"),
+        ("status", rec["status"]),
+    ]
+    rows += [("file", f) for f in result["files"]]
+    return rows
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    term = _Terminal(quiet=args.json, verbose=args.verbose)
+    try:
+        result = _run(args, term)
+    except CommissionError as err:
+        term.close()
+        print(f"commission: error: {err}", file=sys.stderr)
+        if args.verbose and err.__cause__ is not None:
+            print(f"  caused by: {type(err.__cause__).__name__}: {err.__cause__}", file=sys.stderr)
+        return err.exit_code
+    except KeyboardInterrupt:
+        term.close()
+        print("commission: interrupted", file=sys.stderr)
+        return Aborted.exit_code
+    if args.json:
+        json.dump(result, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,157 @@
+"""Every setting of a commissioning run, validated (pydantic v2), loaded from configs/*.yaml.
+
+A config file is a YAML mapping with up to four sections; anything omitted takes
+the default below (which is the paper's experiment with the corrected chirp)::
+
+    excitation:  {amplitude_nm, f_start_hz, f_end_hz, duration_s, sample_rate_hz,
+                  bias_amplitude_nm, bias_frequency_hz, phase_deg, form}
+    safety:      {max_torque_nm, max_speed_rad_s, max_travel_rad, margin,
+                  planning_inertia_kg_m2, planning_damping_nm_s_per_rad}
+    identification: {...}          options of the identifier (commission.ident)
+    sim:         {...}             the simulated plant (sim_drive.plant.PlantParameters)
+
+Unknown keys are errors, so a typo never silently falls back to a default.
+"""
+
+from __future__ import annotations
+
+import math
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from .exceptions import ConfigError
+
+
+class ChirpForm(str, Enum):
+    """How the chirp's phase is built."""
+
+    LINEAR = "linear"
+    """Correct linear chirp: instantaneous frequency sweeps f_start → f_end."""
+    PAPER_LITERAL = "paper-literal"
+    """The paper's eq. 18–19 taken literally, sin(ω(t)·t): ends near 2·f_end − f_start."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ExcitationConfig(_Section):
+    """Step 1 of the method: the chirp torque of paper eq. 18–19."""
+
+    amplitude_nm: float = Field(0.0764, gt=0, description="chirp amplitude A [N·m] (paper: 12 % of rated)")
+    f_start_hz: float = Field(0.1, gt=0, description="chirp start frequency [Hz]")
+    f_end_hz: float = Field(400.0, gt=0, description="chirp end frequency [Hz]")
+    duration_s: float = Field(10.0, gt=0, le=600, description="experiment length [s]")
+    sample_rate_hz: float = Field(8000.0, gt=0, le=100_000, description="drive sample rate [Hz]")
+    bias_amplitude_nm: float = Field(0.2292, ge=0, description="slow sine amplitude [N·m] (paper: 3A)")
+    bias_frequency_hz: float = Field(0.1, ge=0, description="slow sine frequency [Hz]")
+    phase_deg: float = Field(0.0, description="initial chirp phase φ0 [deg]")
+    form: ChirpForm = Field(ChirpForm.LINEAR, description="'linear' (default) or 'paper-literal'")
+
+    @model_validator(mode="after")
+    def _band(self) -> ExcitationConfig:
+        if self.f_end_hz <= self.f_start_hz:
+            raise ValueError(f"f_end_hz ({self.f_end_hz}) must be above f_start_hz ({self.f_start_hz})")
+        if self.f_end_hz >= self.sample_rate_hz / 2:
+            raise ValueError(
+                f"f_end_hz ({self.f_end_hz}) must be below Nyquist ({self.sample_rate_hz / 2} Hz)"
+            )
+        return self
+
+    @property
+    def n_samples(self) -> int:
+        return int(round(self.duration_s * self.sample_rate_hz))
+
+
+class SafetyConfig(_Section):
+    """The envelope the whole excitation is checked against before anything moves.
+
+    Speed and travel are predicted with a rigid-body model J·dv/dt = τ − B·v of
+    the whole axis (``planning_*``); the predicted peaks, times ``margin``, must
+    stay inside the limits. The drive enforces the same torque and speed limits
+    itself during the run.
+    """
+
+    max_torque_nm: float = Field(0.5, gt=0, description="largest torque reference allowed [N·m]")
+    max_speed_rad_s: float = Field(50.0, gt=0, description="largest motor speed allowed [rad/s]")
+    max_travel_rad: float = Field(200.0, gt=0, description="largest motor travel from the start [rad]")
+    margin: float = Field(1.25, ge=1.0, description="factor on predicted speed and travel")
+    planning_inertia_kg_m2: float = Field(
+        6.7e-4, gt=0, description="total axis inertia for the prediction [kg·m²] (lower = more conservative)"
+    )
+    planning_damping_nm_s_per_rad: float = Field(
+        1.37e-2, gt=0, description="total viscous friction for the prediction [N·m·s/rad] (lower = more conservative)"
+    )
+
+
+class Config(_Section):
+    """A whole commissioning recipe."""
+
+    excitation: ExcitationConfig = ExcitationConfig()
+    safety: SafetyConfig = SafetyConfig()
+    identification: dict[str, Any] = Field(default_factory=dict, description="identifier options")
+    sim: dict[str, Any] = Field(
+        default_factory=dict,
+        description="simulated plant parameters (sim_drive.plant.PlantParameters), used with --sim",
+    )
+
+    @model_validator(mode="after")
+    def _envelope_basics(self) -> Config:
+        peak = self.excitation.amplitude_nm + self.excitation.bias_amplitude_nm
+        if peak > self.safety.max_torque_nm:
+            raise ValueError(
+                f"excitation peak torque {peak:.4g} N·m exceeds safety.max_torque_nm "
+                f"{self.safety.max_torque_nm:.4g} N·m"
+            )
+        return self
+
+
+def _describe(err: ValidationError, source: str) -> str:
+    first = err.errors()[0]
+    where = ".".join(str(p) for p in first["loc"]) or "(top level)"
+    msg = first["msg"]
+    if first["type"] == "extra_forbidden":
+        msg = "unknown key"
+    more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
+    return f"{source}: {where}: {msg}{more}"
+
+
+def config_from_dict(data: dict[str, Any] | None, source: str = "config") -> Config:
+    """Validate a config mapping; errors name the key (``excitation.amplitude_nm: ...``)."""
+    try:
+        return Config.model_validate(data or {})
+    except ValidationError as err:
+        raise ConfigError(_describe(err, source)) from err
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Load and validate a YAML config; ``None`` gives the defaults (the paper's experiment)."""
+    if path is None:
+        return Config()
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError as err:
+        raise ConfigError(f"{p}: no such config file") from err
+    except OSError as err:
+        raise ConfigError(f"{p}: cannot read config: {err.strerror}") from err
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{p}: not valid YAML{where}") from err
+    if data is not None and not isinstance(data, dict):
+        raise ConfigError(f"{p}: a config must be a mapping of sections, got {type(data).__name__}")
+    return config_from_dict(data, str(p))
+
+
+def config_to_dict(config: Config) -> dict[str, Any]:
+    """JSON-ready dict of a config (for logs and reports)."""
+    return config.model_dump(mode="json")
+
+

@@ -1,0 +1,78 @@
+"""The safety envelope: the whole excitation is checked before anything moves.
+
+Peak torque is read off the waveform. Speed and travel are predicted with a
+rigid-body model of the whole axis, J·dv/dt = τ − B·v (exact ZOH discretisation),
+from ``safety.planning_*``. The prediction times ``safety.margin`` must stay within
+the limits. A lower planning inertia or damping gives larger predictions, so
+underestimating them errs on the safe side; the drive's own torque and speed
+limits (written before enabling) are the second layer during the run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.signal import lfilter
+
+from .config import SafetyConfig
+from .exceptions import SafetyLimitExceeded
+
+
+@dataclass(frozen=True)
+class EnvelopeCheck:
+    """Predicted peaks of an excitation (before the margin) and the limits they were held to."""
+
+    peak_torque_nm: float
+    predicted_peak_speed_rad_s: float
+    predicted_peak_travel_rad: float
+    margin: float
+    max_torque_nm: float
+    max_speed_rad_s: float
+    max_travel_rad: float
+
+
+def rigid_body_response(
+    torque_nm: NDArray[np.float64], sample_rate_hz: float, inertia_kg_m2: float, damping_nm_s_per_rad: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(velocity [rad/s], position [rad]) of J·dv/dt = τ − B·v under ZOH torque, from rest; shapes (N,)."""
+    ts = 1.0 / sample_rate_hz
+    a = np.exp(-damping_nm_s_per_rad * ts / inertia_kg_m2)
+    gain = (1.0 - a) / damping_nm_s_per_rad
+    v = lfilter([0.0, gain], [1.0, -a], torque_nm)
+    x = np.cumsum(v) * ts
+    return v, x
+
+
+def check_envelope(torque_nm: NDArray[np.float64], sample_rate_hz: float, safety: SafetyConfig) -> EnvelopeCheck:
+    """Check a torque waveform against the envelope; raises SafetyLimitExceeded, naming the limit."""
+    tau = np.asarray(torque_nm, dtype=float)
+    if not np.all(np.isfinite(tau)):
+        raise SafetyLimitExceeded("excitation contains non-finite samples")
+    v, x = rigid_body_response(tau, sample_rate_hz, safety.planning_inertia_kg_m2, safety.planning_damping_nm_s_per_rad)
+    check = EnvelopeCheck(
+        peak_torque_nm=float(np.max(np.abs(tau))),
+        predicted_peak_speed_rad_s=float(np.max(np.abs(v))),
+        predicted_peak_travel_rad=float(np.max(np.abs(x))),
+        margin=safety.margin,
+        max_torque_nm=safety.max_torque_nm,
+        max_speed_rad_s=safety.max_speed_rad_s,
+        max_travel_rad=safety.max_travel_rad,
+    )
+    if check.peak_torque_nm > safety.max_torque_nm:
+        raise SafetyLimitExceeded(
+            f"excitation torque peaks at {check.peak_torque_nm:.4g} N·m, above the limit of {safety.max_torque_nm:.4g} N·m"
+        )
+    m = safety.margin
+    if check.predicted_peak_speed_rad_s * m > safety.max_speed_rad_s:
+        raise SafetyLimitExceeded(
+            f"excitation would reach {check.predicted_peak_speed_rad_s:.4g} rad/s (×{m:g} margin), "
+            f"above the speed limit of {safety.max_speed_rad_s:.4g} rad/s"
+        )
+    if check.predicted_peak_travel_rad * m > safety.max_travel_rad:
+        raise SafetyLimitExceeded(
+            f"excitation would travel {check.predicted_peak_travel_rad:.4g} rad (×{m:g} margin), "
+            f"above the travel limit of {safety.max_travel_rad:.4g} rad"
+        )
+    return check

@@ -1,0 +1,140 @@
+"""The commissioning sequence, and the owner of safety.
+
+preflight (whole excitation checked against the envelope; drive state) → limits →
+enable → excite → quick stop + disable on every path (success, error, Ctrl-C) →
+write the log → identify (the seam where ``commission.ident`` plugs in).
+
+Nothing is sent to the drive before the whole waveform has passed the envelope
+check; after an abort the drive is left disabled and whatever was recorded is
+in the log.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .config import Config, config_to_dict
+from .drive import Drive, DriveError, Mode, State
+from .envelope import EnvelopeCheck, check_envelope
+from .excitation import Waveform, chirp
+from .exceptions import Aborted, CommissionError, DriveFault
+from .mcaplog import write_recording
+from .recording import Recording
+
+#: progress(label, done, total)
+Progress = Callable[[str, int, int], None]
+#: identify(recording) -> an identification result (commission.ident)
+Identifier = Callable[[Recording], Any]
+
+LOG_NAME = "run.mcap"
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """What a commissioning run produced."""
+
+    out_dir: Path
+    log_path: Path
+    recording: Recording
+    waveform: Waveform
+    envelope: EnvelopeCheck
+    identification: Any | None = None
+    files: list[Path] = field(default_factory=list)
+
+
+def _safe_stop(drive: Drive) -> str | None:
+    """Quick stop and disable; returns a problem description instead of raising."""
+    try:
+        drive.quick_stop()
+        drive.disable()
+    except DriveError as err:
+        return str(err)
+    return None
+
+
+class Sequencer:
+    """Runs one commissioning experiment on an open drive.
+
+    :param config: the validated recipe.
+    :param drive: an open drive (the caller closes it).
+    :param out_dir: folder for run.mcap and later outputs (created).
+    :param progress: called during the excitation with ("excitation", samples done, total).
+    :param identify: the identifier seam; None stops after the log.
+    """
+
+    def __init__(
+        self,
+        config: Config,
+        drive: Drive,
+        out_dir: Path,
+        *,
+        progress: Progress | None = None,
+        identify: Identifier | None = None,
+    ) -> None:
+        self.config = config
+        self.drive = drive
+        self.out_dir = Path(out_dir)
+        self.progress = progress
+        self.identify = identify
+
+    def preflight(self) -> tuple[Waveform, EnvelopeCheck]:
+        """Build the excitation and check all of it against the envelope; touches only the drive's state."""
+        waveform = chirp(self.config.excitation)
+        envelope = check_envelope(waveform.samples, waveform.sample_rate_hz, self.config.safety)
+        state = self.drive.state
+        if state is State.FAULT:
+            raise DriveFault("drive is in Fault state before the run: find the cause and reset it first")
+        if state is State.OPERATION_ENABLED:
+            raise DriveError("drive is already enabled by someone else: refusing to take over a moving axis")
+        return waveform, envelope
+
+    def run(self) -> RunOutcome:
+        waveform, envelope = self.preflight()
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        log_path = self.out_dir / LOG_NAME
+        safety = self.config.safety
+        self.drive.set_limits(safety.max_torque_nm, safety.max_speed_rad_s, safety.max_travel_rad)
+
+        def on_progress(done: int, total: int) -> None:
+            if self.progress is not None:
+                self.progress("excitation", done, total)
+
+        try:
+            self.drive.enable(Mode.CYCLIC_SYNC_TORQUE)
+            recording = self.drive.run_excitation(waveform.samples, waveform.sample_rate_hz, progress=on_progress)
+        except BaseException as err:
+            problem = _safe_stop(self.drive)
+            saved = self._save_partial(log_path, err)
+            tail = f"; partial log: {saved}" if saved else "; nothing was recorded"
+            if problem:
+                tail += f"; stopping the drive also failed: {problem}"
+            if isinstance(err, KeyboardInterrupt):
+                raise Aborted(f"interrupted: drive stopped and disabled{tail}") from err
+            if isinstance(err, CommissionError):
+                err.args = (f"{err}{tail}",)
+                raise
+            raise
+        problem = _safe_stop(self.drive)
+        if problem:
+            raise DriveError(f"the experiment ended but the drive did not disable: {problem}")
+        recording = recording.replace(metadata={**recording.metadata, "status": "complete",
+                                                "excitation": waveform.description})
+        write_recording(log_path, recording, config=config_to_dict(self.config))
+        files = [log_path]
+        identification = self.identify(recording) if self.identify is not None else None
+        return RunOutcome(self.out_dir, log_path, recording, waveform, envelope, identification, files)
+
+    def _save_partial(self, log_path: Path, err: BaseException) -> Path | None:
+        try:
+            partial = self.drive.recorded_so_far()
+        except DriveError:
+            partial = None
+        if partial is None:
+            return None
+        reason = str(err) or type(err).__name__
+        partial = partial.replace(metadata={**partial.metadata, "status": f"aborted: {reason}"})
+        write_recording(log_path, partial, config=config_to_dict(self.config))
+        return log_path
