@@ -30,6 +30,7 @@ modes:
 
 outputs (in --out DIR, default ./commissioning/<date-time>/):
   run.mcap       every sample sent and measured, the config and the drive's identity
+  backlash-check.mcap   the velocity-reversal experiment (with --measure-backlash)
 
 exit codes: 0 ok, 1 other error, 2 config, 3 input file, 4 drive, 5 safety limit, 6 identification,
             130 interrupted
@@ -66,6 +67,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--config", metavar="FILE", type=Path, help="commissioning recipe (YAML); default: the paper's experiment (configs/default.yaml)")
     run.add_argument("--out", metavar="DIR", type=Path, help="output folder (default: ./commissioning/<date-time>/)")
     run.add_argument("--seed", type=int, help="seed of the simulated plant's noise (overrides sim.seed)")
+    run.add_argument(
+        "--measure-backlash", action="store_true",
+        help="after the run, also measure the backlash at velocity reversals (paper §4.2; needs a load encoder; "
+        "settings in the config's 'backlash_check' section)",
+    )
     out = p.add_argument_group("output")
     out.add_argument("--json", action="store_true", help="print one JSON document on stdout and nothing else")
     out.add_argument("-v", "--verbose", action="store_true", help="more detail; show the cause of errors")
@@ -186,8 +192,18 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     )
     with drive:
         term.say(f"drive: {drive.info.vendor} {drive.info.product} ({drive.info.backend})")
-        outcome = Sequencer(config, drive, out_dir, progress=term.progress).run()
+        sequencer = Sequencer(config, drive, out_dir, progress=term.progress)
+        outcome = sequencer.run()
+        check = sequencer.measure_backlash() if args.measure_backlash else None
         term.close()
+    if check is not None:
+        _, reversals, check_log = check
+        result["backlash_check"] = {
+            "epsilon_deg": reversals.epsilon_deg,
+            "spread_deg": float(np.degrees(reversals.spread_rad)),
+            "reversals": len(reversals.reversals),
+            "log": str(check_log),
+        }
     result["source"] = drive.info.backend
     result["recording"] = _recording_summary(outcome.recording)
     result["envelope"] = {
@@ -196,6 +212,8 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
         "predicted_peak_travel_rad": outcome.envelope.predicted_peak_travel_rad,
     }
     result["files"] = [str(f) for f in outcome.files]
+    if check is not None:
+        result["files"].append(str(check[2]))
     term.summary("commissioning run", _rows(result))
     return result
 
@@ -210,6 +228,10 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
         ("peak motor speed", f"{rec['peak_motor_velocity_rad_s']:.4g} rad/s"),
         ("status", rec["status"]),
     ]
+    if "backlash_check" in result:
+        bc = result["backlash_check"]
+        rows.append(("backlash check (§4.2)",
+                     f"ε = {bc['epsilon_deg']:.3f}° ± {bc['spread_deg']:.3f}° over {bc['reversals']} reversals"))
     rows += [("file", f) for f in result["files"]]
     return rows
 

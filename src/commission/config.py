@@ -7,6 +7,7 @@ the default below (which is the paper's experiment with the corrected chirp)::
                   bias_amplitude_nm, bias_frequency_hz, phase_deg, form}
     safety:      {max_torque_nm, max_speed_rad_s, max_travel_rad, margin,
                   planning_inertia_kg_m2, planning_damping_nm_s_per_rad}
+    backlash_check: {amplitude_rad_s, frequency_hz, duration_s}
     identification: {...}          options of the identifier (commission.ident)
     sim:         {...}             the simulated plant (sim_drive.plant.PlantParameters)
 
@@ -88,11 +89,21 @@ class SafetyConfig(_Section):
     )
 
 
+class BacklashCheckConfig(_Section):
+    """The independent backlash check of paper §4.2 (``--measure-backlash``): a sine
+    velocity reference in cyclic synchronous velocity mode; needs a load-side encoder."""
+
+    amplitude_rad_s: float = Field(1.5, gt=0, description="velocity amplitude [rad/s] (paper: 1.5)")
+    frequency_hz: float = Field(0.5, gt=0, description="reference frequency [Hz] (paper: 0.5)")
+    duration_s: float = Field(4.0, gt=0, le=600, description="length [s]; 4 s at 0.5 Hz gives 3 reversals")
+
+
 class Config(_Section):
     """A whole commissioning recipe."""
 
     excitation: ExcitationConfig = ExcitationConfig()
     safety: SafetyConfig = SafetyConfig()
+    backlash_check: BacklashCheckConfig = BacklashCheckConfig()
     identification: dict[str, Any] = Field(default_factory=dict, description="identifier options")
     sim: dict[str, Any] = Field(
         default_factory=dict,

@@ -76,3 +76,30 @@ def check_envelope(torque_nm: NDArray[np.float64], sample_rate_hz: float, safety
             f"above the travel limit of {safety.max_travel_rad:.4g} rad"
         )
     return check
+
+
+def check_velocity_envelope(velocity_rad_s: NDArray[np.float64], sample_rate_hz: float, safety: SafetyConfig) -> EnvelopeCheck:
+    """Check a velocity reference: its peak and its integral (travel), times the margin."""
+    v = np.asarray(velocity_rad_s, dtype=float)
+    x = np.cumsum(v) / sample_rate_hz
+    check = EnvelopeCheck(
+        peak_torque_nm=float("nan"),
+        predicted_peak_speed_rad_s=float(np.max(np.abs(v))),
+        predicted_peak_travel_rad=float(np.max(np.abs(x))),
+        margin=safety.margin,
+        max_torque_nm=safety.max_torque_nm,
+        max_speed_rad_s=safety.max_speed_rad_s,
+        max_travel_rad=safety.max_travel_rad,
+    )
+    m = safety.margin
+    if check.predicted_peak_speed_rad_s * m > safety.max_speed_rad_s:
+        raise SafetyLimitExceeded(
+            f"velocity reference peaks at {check.predicted_peak_speed_rad_s:.4g} rad/s (×{m:g} margin), "
+            f"above the speed limit of {safety.max_speed_rad_s:.4g} rad/s"
+        )
+    if check.predicted_peak_travel_rad * m > safety.max_travel_rad:
+        raise SafetyLimitExceeded(
+            f"velocity reference travels {check.predicted_peak_travel_rad:.4g} rad (×{m:g} margin), "
+            f"above the travel limit of {safety.max_travel_rad:.4g} rad"
+        )
+    return check

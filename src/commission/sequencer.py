@@ -3,6 +3,7 @@
 preflight (whole excitation checked against the envelope; drive state) → limits →
 enable → excite → quick stop + disable on every path (success, error, Ctrl-C) →
 write the log → identify (the seam where ``commission.ident`` plugs in).
+Optionally, the paper's independent backlash check (§4.2) in velocity mode.
 
 Nothing is sent to the drive before the whole waveform has passed the envelope
 check; after an abort the drive is left disabled and whatever was recorded is
@@ -18,10 +19,11 @@ from typing import Any
 
 from .config import Config, config_to_dict
 from .drive import Drive, DriveError, Mode, State
-from .envelope import EnvelopeCheck, check_envelope
-from .excitation import Waveform, chirp
+from .envelope import EnvelopeCheck, check_envelope, check_velocity_envelope
+from .excitation import Waveform, chirp, velocity_reversal
 from .exceptions import Aborted, CommissionError, DriveFault
 from .mcaplog import write_recording
+from .ident.reversal import ReversalCheck, backlash_from_reversals
 from .recording import Recording
 
 #: progress(label, done, total)
@@ -30,6 +32,7 @@ Progress = Callable[[str, int, int], None]
 Identifier = Callable[[Recording], Any]
 
 LOG_NAME = "run.mcap"
+CHECK_LOG_NAME = "backlash-check.mcap"
 
 
 @dataclass(frozen=True)
@@ -80,31 +83,55 @@ class Sequencer:
         self.progress = progress
         self.identify = identify
 
-    def preflight(self) -> tuple[Waveform, EnvelopeCheck]:
-        """Build the excitation and check all of it against the envelope; touches only the drive's state."""
-        waveform = chirp(self.config.excitation)
-        envelope = check_envelope(waveform.samples, waveform.sample_rate_hz, self.config.safety)
+    def _check_drive(self) -> None:
         state = self.drive.state
         if state is State.FAULT:
             raise DriveFault("drive is in Fault state before the run: find the cause and reset it first")
         if state is State.OPERATION_ENABLED:
             raise DriveError("drive is already enabled by someone else: refusing to take over a moving axis")
+
+    def preflight(self) -> tuple[Waveform, EnvelopeCheck]:
+        """Build the excitation and check all of it against the envelope; touches only the drive's state."""
+        waveform = chirp(self.config.excitation)
+        envelope = check_envelope(waveform.samples, waveform.sample_rate_hz, self.config.safety)
+        self._check_drive()
         return waveform, envelope
 
     def run(self) -> RunOutcome:
+        """The commissioning experiment: chirp torque, log, identify."""
         waveform, envelope = self.preflight()
-        self.out_dir.mkdir(parents=True, exist_ok=True)
         log_path = self.out_dir / LOG_NAME
+        recording = self._experiment(waveform, Mode.CYCLIC_SYNC_TORQUE, log_path)
+        files = [log_path]
+        identification = self.identify(recording) if self.identify is not None else None
+        return RunOutcome(self.out_dir, log_path, recording, waveform, envelope, identification, files)
+
+    def measure_backlash(self) -> tuple[Recording, ReversalCheck, Path]:
+        """The backlash check of paper §4.2: velocity reversals, needs a load encoder."""
+        bc = self.config.backlash_check
+        waveform = velocity_reversal(bc.amplitude_rad_s, bc.frequency_hz, bc.duration_s,
+                                     self.config.excitation.sample_rate_hz)
+        check_velocity_envelope(waveform.samples, waveform.sample_rate_hz, self.config.safety)
+        self._check_drive()
+        log_path = self.out_dir / CHECK_LOG_NAME
+        recording = self._experiment(waveform, Mode.CYCLIC_SYNC_VELOCITY, log_path, label="backlash check")
+        return recording, backlash_from_reversals(recording), log_path
+
+    def _experiment(self, waveform: Waveform, mode: Mode, log_path: Path, label: str = "excitation") -> Recording:
+        """limits → enable → play → safe stop on every path → log (partial after an abort)."""
+        self.out_dir.mkdir(parents=True, exist_ok=True)
         safety = self.config.safety
         self.drive.set_limits(safety.max_torque_nm, safety.max_speed_rad_s, safety.max_travel_rad)
 
         def on_progress(done: int, total: int) -> None:
             if self.progress is not None:
-                self.progress("excitation", done, total)
+                self.progress(label, done, total)
 
         try:
-            self.drive.enable(Mode.CYCLIC_SYNC_TORQUE)
-            recording = self.drive.run_excitation(waveform.samples, waveform.sample_rate_hz, progress=on_progress)
+            self.drive.enable(mode)
+            recording = self.drive.run_excitation(
+                waveform.samples, waveform.sample_rate_hz, mode=mode, progress=on_progress
+            )
         except BaseException as err:
             problem = _safe_stop(self.drive)
             saved = self._save_partial(log_path, err)
@@ -115,17 +142,15 @@ class Sequencer:
                 raise Aborted(f"interrupted: drive stopped and disabled{tail}") from err
             if isinstance(err, CommissionError):
                 err.args = (f"{err}{tail}",)
-                raise
             raise
         problem = _safe_stop(self.drive)
         if problem:
             raise DriveError(f"the experiment ended but the drive did not disable: {problem}")
-        recording = recording.replace(metadata={**recording.metadata, "status": "complete",
-                                                "excitation": waveform.description})
+        recording = recording.replace(
+            metadata={**recording.metadata, "status": "complete", "excitation": waveform.description}
+        )
         write_recording(log_path, recording, config=config_to_dict(self.config))
-        files = [log_path]
-        identification = self.identify(recording) if self.identify is not None else None
-        return RunOutcome(self.out_dir, log_path, recording, waveform, envelope, identification, files)
+        return recording
 
     def _save_partial(self, log_path: Path, err: BaseException) -> Path | None:
         try:

@@ -1,0 +1,110 @@
+"""The command line: modes, outputs, and bad input as one line with a non-zero exit."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from commission.cli import main
+from commission.csvlog import write_csv
+from commission.mcaplog import read_recording
+
+
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim")
+    assert main(["--sim", "--out", str(out), "--json"]) == 0
+    return out
+
+
+def test_sim_run_writes_the_log(sim_run):
+    rec = read_recording(sim_run / "run.mcap")
+    assert len(rec) == 80_000 and rec.metadata["status"] == "complete"
+
+
+def test_replay_json(sim_run, tmp_path, capsys):
+    capsys.readouterr()
+    assert main(["--replay", str(sim_run / "run.mcap"), "--out", str(tmp_path), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["recording"]["samples"] == 80_000
+    assert doc["recording"]["signals"][:3] == ["torque_ref", "motor_position", "motor_velocity"]
+
+
+def test_replay_csv(sim_run, tmp_path, capsys):
+    rec = read_recording(sim_run / "run.mcap")
+    write_csv(tmp_path / "axis.csv", rec.head(8000))
+    capsys.readouterr()
+    assert main(["--replay", str(tmp_path / "axis.csv"), "--out", str(tmp_path / "o"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["recording"]["samples"] == 8000
+
+
+def test_truncated_log_is_replayed_with_a_warning(sim_run, tmp_path, capsys):
+    data = (sim_run / "run.mcap").read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    capsys.readouterr()
+    assert main(["--replay", str(cut), "--out", str(tmp_path / "o"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert 20_000 < doc["recording"]["samples"] < 60_000
+    assert doc["warnings"]
+
+
+def _one_line_error(argv, capsys, code):
+    capsys.readouterr()
+    assert main(argv) == code
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("commission: error: ") and "\n" not in err and "Traceback" not in err
+    return err
+
+
+@pytest.mark.parametrize(
+    "content, code, fragment",
+    [
+        (None, 3, "no such file"),
+        (b"", 3, "empty"),
+        (b"\x89MCAP0\r\ngarbage garbage garbage", 3, ""),
+        (b"this is not an mcap file at all", 3, ""),
+    ],
+)
+def test_bad_mcap(tmp_path, capsys, content, code, fragment):
+    f = tmp_path / "x.mcap"
+    if content is not None:
+        f.write_bytes(content)
+    err = _one_line_error(["--replay", str(f), "--out", str(tmp_path / "o")], capsys, code)
+    assert fragment in err
+
+
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("t,torque_ref\n0,1\n0.1,2\n", "motor_velocity"),
+        ("t,torque_ref,motor_velocity\n0,1,nan\n0.1,2,3\n", "row"),
+        ("t,torque_ref,motor_velocity\n0,1,2\n0.1,2,3\n0.25,2,3\n0.3,1,1\n", "uniform"),
+        ("t,torque_ref,motor_velocity\n0,1,2\n0.2,2,3\n0.1,2,3\n", "increasing"),
+    ],
+)
+def test_bad_csv(tmp_path, capsys, text, fragment):
+    f = tmp_path / "x.csv"
+    f.write_text(text)
+    err = _one_line_error(["--replay", str(f), "--out", str(tmp_path / "o")], capsys, 3)
+    assert fragment in err
+
+
+def test_bad_config_and_envelope_and_port(tmp_path, capsys):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("excitation:\n  amplitude: 1\n")
+    assert "excitation.amplitude: unknown key" in _one_line_error(["--sim", "--config", str(cfg)], capsys, 2)
+    cfg.write_text("safety:\n  max_speed_rad_s: 5\n")
+    err = _one_line_error(["--sim", "--config", str(cfg), "--out", str(tmp_path / "o")], capsys, 5)
+    assert "speed limit" in err
+    assert not (tmp_path / "o" / "run.mcap").exists()
+    assert "does not exist" in _one_line_error(["--port", "/dev/ttyNOPE9"], capsys, 4)
+    _one_line_error(["--replay", str(tmp_path / "x.txt")], capsys, 3)
+
+
+def test_help_explains_every_mode():
+    out = subprocess.run([sys.executable, "-m", "commission.cli", "--help"], capture_output=True, text=True).stdout
+    for word in ("--sim", "--port", "--replay", "--config", "--out", "--interface", "--json", "run.mcap"):
+        assert word in out
