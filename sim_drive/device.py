@@ -276,8 +276,12 @@ class SimulatedDevice:
     def _check_response(self, r: PlantResponse, fault: ErrorCode | None) -> tuple[int, ErrorCode | None]:
         """Samples to keep and the fault tripped by the speed/travel limits (first violation wins)."""
         n = len(r.motor_velocity)
-        fast = np.flatnonzero(np.abs(r.motor_velocity) > self.max_speed_rad_s)
-        far = np.flatnonzero(np.abs(r.motor_position - self._travel_origin_rad) > self.max_travel_rad)
+        speed = np.abs(r.motor_velocity)
+        travel = np.abs(r.motor_position - self._travel_origin_rad)
+        if speed.max() <= self.max_speed_rad_s and travel.max() <= self.max_travel_rad:
+            return n, fault  # the common case, without searching
+        fast = np.flatnonzero(speed > self.max_speed_rad_s)
+        far = np.flatnonzero(travel > self.max_travel_rad)
         first = n
         if fast.size and fast[0] < first:
             first, fault = int(fast[0]), ErrorCode.OVERSPEED

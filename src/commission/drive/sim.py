@@ -25,8 +25,9 @@ try:
 except ImportError as err:  # pragma: no cover - packaging error
     raise ImportError("the sim backend needs the sim_drive package (installed with drive-commission)") from err
 
-#: Ticks played between two progress reports / limit checks (10 ms at 8 kHz).
-CHUNK_SAMPLES = 80
+#: Ticks played per step of the device (25 ms at 8 kHz): the granularity of progress
+#: reports and of a host-side abort; the device checks its limits on every tick regardless.
+CHUNK_SAMPLES = 200
 
 
 def _tool_version() -> str:

@@ -1,0 +1,238 @@
+"""CSV replay logs: a Recording as a table of uniformly sampled columns.
+
+Format::
+
+    # drive-commission recording          (optional '#' comment lines, anywhere)
+    # sample_rate_hz: 8000.0              (optional directive, before the header)
+    # start_time: 2025-01-01T00:00:00+00:00   (optional directive, before the header)
+    t,torque_ref,motor_velocity,motor_position
+    0.0,0.12,0.0,0.0
+    0.000125,0.13,0.002,2.5e-07
+    ...
+
+Columns, by header name (a unit in brackets may follow, ``t [s]``; it must then
+be the SI unit below): ``t`` [s], ``torque_ref`` [N·m] and ``motor_velocity``
+[rad/s] are required; ``motor_position`` [rad], ``load_position`` [rad] and
+``load_velocity`` [rad/s] are optional; any other column is an error. The
+separator is ``,`` (``;`` or tab when the header has no comma).
+
+Sampling must be uniform: every interval within 1e-3 of the median interval.
+The sample rate is ``sample_rate_hz`` from its directive when given (it must
+agree with the data), else 1 / median interval. ``start_time`` is the
+directive's ISO-8601 time when given, else the file's modification time in
+UTC. ``Recording.metadata["source"]`` is the file name; the drive is unknown.
+
+:func:`write_csv` writes both directives and every float with ``repr``, so
+that :func:`read_csv` gives back the same samples, rate and start time bitwise.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import re
+from collections.abc import Sequence
+from datetime import datetime, timezone
+
+import numpy as np
+
+from .exceptions import LogFormatError, RecordingError
+from .recording import REQUIRED_SIGNALS, SIGNAL_UNITS, Recording
+
+__all__ = ["UNIFORM_TOLERANCE", "read_csv", "write_csv"]
+
+#: Largest deviation of a sample interval from the median one, relative to it.
+UNIFORM_TOLERANCE = 1e-3
+
+_UNITS = {"t": "s", **SIGNAL_UNITS}
+_UNIT_ALIASES = {"N·m": {"N·m", "Nm", "N*m", "N.m", "N m", "N⋅m"}}
+_HEADER_CELL = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(?:\[\s*([^\]]*?)\s*\])?\s*$")
+_DIRECTIVE = re.compile(r"^#\s*(sample_rate_hz|start_time)\s*[:=]\s*(.*?)\s*$")
+
+
+def _unit_ok(expected: str, given: str) -> bool:
+    return given in _UNIT_ALIASES.get(expected, {expected})
+
+
+def read_csv(path: str | os.PathLike[str]) -> Recording:
+    """Read a CSV replay log (format in the module docstring) as a Recording."""
+    p = os.fspath(path)
+    try:
+        with open(p, encoding="utf-8-sig", newline="") as f:
+            text = f.read()
+        mtime = os.stat(p).st_mtime
+    except FileNotFoundError as err:
+        raise LogFormatError(f"{p}: no such file") from err
+    except IsADirectoryError as err:
+        raise LogFormatError(f"{p}: is a directory, not a CSV file") from err
+    except UnicodeDecodeError as err:
+        raise LogFormatError(f"{p}: not a text file (invalid UTF-8 at byte {err.start})") from err
+    except OSError as err:
+        raise LogFormatError(f"{p}: cannot read ({err.strerror or err})") from err
+    if not text.strip():
+        raise LogFormatError(f"{p}: empty file")
+
+    lines = text.splitlines()
+    directives: dict[str, tuple[int, str]] = {}
+    header_at = None
+    for i, line in enumerate(lines):
+        stripped = line.strip()
+        if not stripped:
+            continue
+        if stripped.startswith("#"):
+            m = _DIRECTIVE.match(stripped)
+            if m:
+                directives[m.group(1)] = (i + 1, m.group(2))
+            continue
+        header_at = i
+        break
+    if header_at is None:
+        raise LogFormatError(f"{p}: no header line (only comments)")
+    header_line = lines[header_at]
+    delimiter = "," if "," in header_line else ";" if ";" in header_line else "\t" if "\t" in header_line else ","
+    columns = _parse_header(p, header_at + 1, next(csv.reader([header_line], delimiter=delimiter)))
+
+    rows: list[list[float]] = []
+    line_numbers: list[int] = []
+    reader = csv.reader(io.StringIO("\n".join(lines[header_at + 1 :])), delimiter=delimiter)
+    for offset, cells in enumerate(reader):
+        lineno = header_at + 2 + offset
+        if not cells or (len(cells) == 1 and not cells[0].strip()) or cells[0].lstrip().startswith("#"):
+            continue
+        if len(cells) != len(columns):
+            raise LogFormatError(f"{p}: line {lineno}: {len(cells)} cells, the header has {len(columns)} columns")
+        try:
+            row = [float(c) for c in cells]
+        except ValueError:
+            row = []
+            for name, cell in zip(columns, cells):
+                try:
+                    row.append(float(cell))
+                except ValueError:
+                    what = "empty cell" if not cell.strip() else f"not a number ({cell.strip()!r})"
+                    raise LogFormatError(f"{p}: line {lineno}, column '{name}': {what}") from None
+        rows.append(row)
+        line_numbers.append(lineno)
+
+    if len(rows) < 2:
+        raise LogFormatError(f"{p}: {len(rows)} data row{'s' if len(rows) != 1 else ''}, a recording needs at least 2")
+    data = np.array(rows, dtype=np.float64)
+    bad = ~np.isfinite(data)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise LogFormatError(
+            f"{p}: line {line_numbers[r]}, column '{columns[c]}': {float(data[r, c])!r} is not a finite number"
+        )
+
+    t = data[:, columns.index("t")]
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        k = int(np.argmax(dt <= 0)) + 1
+        raise LogFormatError(
+            f"{p}: line {line_numbers[k]}: time does not increase (t={float(t[k])!r} s after t={float(t[k - 1])!r} s)"
+        )
+    dt_med = float(np.median(dt))
+    off = np.abs(dt - dt_med) > UNIFORM_TOLERANCE * dt_med
+    if off.any():
+        k = int(np.argmax(off)) + 1
+        raise LogFormatError(
+            f"{p}: line {line_numbers[k]}: non-uniform sampling (interval {dt[k - 1]:.9g} s, "
+            f"expected {dt_med:.9g} s within {UNIFORM_TOLERANCE:g} of it)"
+        )
+
+    sample_rate_hz = 1.0 / dt_med
+    if "sample_rate_hz" in directives:
+        lineno, value = directives["sample_rate_hz"]
+        try:
+            given = float(value)
+        except ValueError:
+            raise LogFormatError(f"{p}: line {lineno}: sample_rate_hz {value!r} is not a number") from None
+        if not (np.isfinite(given) and given > 0) or abs(given * dt_med - 1.0) > UNIFORM_TOLERANCE:
+            raise LogFormatError(
+                f"{p}: line {lineno}: sample_rate_hz {value} disagrees with the time column "
+                f"({sample_rate_hz:.9g} Hz from the median interval)"
+            )
+        sample_rate_hz = given
+    start_time = datetime.fromtimestamp(mtime, tz=timezone.utc)
+    if "start_time" in directives:
+        lineno, value = directives["start_time"]
+        try:
+            start_time = datetime.fromisoformat(value)
+        except ValueError:
+            raise LogFormatError(f"{p}: line {lineno}: start_time {value!r} is not an ISO-8601 time") from None
+        if start_time.tzinfo is None:
+            raise LogFormatError(f"{p}: line {lineno}: start_time {value!r} has no time zone (add +00:00 for UTC)")
+
+    signals = {name: data[:, i] for i, name in enumerate(columns) if name != "t"}
+    try:
+        return Recording(
+            t=t,
+            sample_rate_hz=sample_rate_hz,
+            start_time=start_time,
+            metadata={"source": os.path.basename(p)},
+            **signals,
+        )
+    except RecordingError as err:
+        raise LogFormatError(f"{p}: {err}") from err
+
+
+def _parse_header(path: str, lineno: int, cells: Sequence[str]) -> list[str]:
+    if all(_looks_numeric(c) for c in cells):
+        raise LogFormatError(f"{path}: line {lineno}: no header line (the first line holds numbers)")
+    names: list[str] = []
+    for cell in cells:
+        m = _HEADER_CELL.match(cell)
+        if not m:
+            raise LogFormatError(f"{path}: line {lineno}: bad column name {cell.strip()!r} in the header")
+        name, unit = m.group(1), m.group(2)
+        if name in _UNITS and unit is not None and not _unit_ok(_UNITS[name], unit):
+            raise LogFormatError(f"{path}: line {lineno}: column '{name}' is in {unit!r}, expected {_UNITS[name]!r}")
+        names.append(name)
+    unknown = [n for n in names if n not in _UNITS]
+    if unknown:
+        raise LogFormatError(
+            f"{path}: line {lineno}: unknown column(s) {', '.join(map(repr, unknown))}; "
+            f"known: {', '.join(_UNITS)}"
+        )
+    duplicate = sorted({n for n in names if names.count(n) > 1})
+    if duplicate:
+        raise LogFormatError(f"{path}: line {lineno}: duplicate column(s) {', '.join(map(repr, duplicate))}")
+    missing = [n for n in ("t", *REQUIRED_SIGNALS) if n not in names]
+    if missing:
+        raise LogFormatError(f"{path}: line {lineno}: missing required column(s) {', '.join(map(repr, missing))}")
+    return names
+
+
+def _looks_numeric(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
+def write_csv(path: str | os.PathLike[str], recording: Recording) -> None:
+    """Write ``recording`` as a CSV replay log (exact floats; directives for rate and start time).
+
+    Drive identity and metadata are not stored. :class:`RecordingError` when the recording
+    is not uniformly sampled within :data:`UNIFORM_TOLERANCE` (the CSV format requires it).
+    """
+    dt = np.diff(recording.t)
+    dt_med = float(np.median(dt))
+    if np.any(np.abs(dt - dt_med) > UNIFORM_TOLERANCE * dt_med):
+        raise RecordingError("CSV logs need uniform sampling; this recording is not (write MCAP instead)")
+    if abs(recording.sample_rate_hz * dt_med - 1.0) > UNIFORM_TOLERANCE:
+        raise RecordingError(
+            f"sample_rate_hz {recording.sample_rate_hz!r} disagrees with the sample times "
+            f"({1.0 / dt_med:.9g} Hz); a CSV log could not be read back"
+        )
+    names = ["t", *(name for name, _ in recording.signals())]
+    columns = [recording.t.tolist(), *(arr.tolist() for _, arr in recording.signals())]
+    units = ", ".join(f"{n} [{_UNITS[n]}]" for n in names)
+    with open(os.fspath(path), "w", encoding="utf-8", newline="\n") as f:
+        f.write(f"# drive-commission recording; units: {units}\n")
+        f.write(f"# sample_rate_hz: {recording.sample_rate_hz!r}\n")
+        f.write(f"# start_time: {recording.start_time.isoformat()}\n")
+        f.write(",".join(names) + "\n")
+        f.writelines(",".join(map(repr, row)) + "\n" for row in zip(*columns))
