@@ -104,3 +104,14 @@ def test_unknown_ports():
         open_drive(port="can0")
     with pytest.raises(DriveNotFound, match="no drive given"):
         open_drive()
+
+
+def test_unwritable_output_folder_is_refused_before_anything_moves(tmp_path):
+    from commission.exceptions import OutputError
+
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    drive = SimDrive()
+    with pytest.raises(OutputError, match="cannot create output folder"):
+        Sequencer(short_config(), drive, blocker / "out").run()
+    assert drive.device.samples_run == 0

@@ -33,7 +33,7 @@ outputs (in --out DIR, default ./commissioning/<date-time>/):
   backlash-check.mcap   the velocity-reversal experiment (with --measure-backlash)
 
 exit codes: 0 ok, 1 other error, 2 config, 3 input file, 4 drive, 5 safety limit, 6 identification,
-            130 interrupted
+            7 output file, 130 interrupted
 """
 
 

@@ -14,6 +14,7 @@ re-raised as one of these with ``raise ... from err`` so the cause is kept::
      |    +-- DriveNotFound           (also FileNotFoundError) unknown or missing port
      +-- SafetyLimitExceeded          excitation or response outside the envelope
      +-- IdentificationError          the data cannot give a trustworthy model
+     +-- OutputError                  an output file cannot be written
      +-- Aborted                      the user pressed Ctrl-C
 
 The CLI prints ``str(err)`` as a single line and exits with ``err.exit_code``.
@@ -79,6 +80,12 @@ class IdentificationError(CommissionError):
     """The data cannot give a trustworthy identification."""
 
     exit_code = 6
+
+
+class OutputError(CommissionError):
+    """An output file (log, result) cannot be written."""
+
+    exit_code = 7
 
 
 class Aborted(CommissionError):

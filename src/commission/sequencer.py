@@ -21,7 +21,7 @@ from .config import Config, config_to_dict
 from .drive import Drive, DriveError, Mode, State
 from .envelope import EnvelopeCheck, check_envelope, check_velocity_envelope
 from .excitation import Waveform, chirp, velocity_reversal
-from .exceptions import Aborted, CommissionError, DriveFault
+from .exceptions import Aborted, CommissionError, DriveFault, OutputError
 from .mcaplog import write_recording
 from .ident.reversal import ReversalCheck, backlash_from_reversals
 from .recording import Recording
@@ -119,7 +119,10 @@ class Sequencer:
 
     def _experiment(self, waveform: Waveform, mode: Mode, log_path: Path, label: str = "excitation") -> Recording:
         """limits → enable → play → safe stop on every path → log (partial after an abort)."""
-        self.out_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)  # before anything moves
+        except OSError as err:
+            raise OutputError(f"cannot create output folder {self.out_dir}: {err.strerror or err}") from err
         safety = self.config.safety
         self.drive.set_limits(safety.max_torque_nm, safety.max_speed_rad_s, safety.max_travel_rad)
 
@@ -149,8 +152,14 @@ class Sequencer:
         recording = recording.replace(
             metadata={**recording.metadata, "status": "complete", "excitation": waveform.description}
         )
-        write_recording(log_path, recording, config=config_to_dict(self.config))
+        self._write_log(log_path, recording)
         return recording
+
+    def _write_log(self, log_path: Path, recording: Recording) -> None:
+        try:
+            write_recording(log_path, recording, config=config_to_dict(self.config))
+        except OSError as err:
+            raise OutputError(f"cannot write {log_path}: {err.strerror or err}") from err
 
     def _save_partial(self, log_path: Path, err: BaseException) -> Path | None:
         try:
@@ -161,5 +170,8 @@ class Sequencer:
             return None
         reason = str(err) or type(err).__name__
         partial = partial.replace(metadata={**partial.metadata, "status": f"aborted: {reason}"})
-        write_recording(log_path, partial, config=config_to_dict(self.config))
+        try:
+            self._write_log(log_path, partial)
+        except OutputError:
+            return None
         return log_path
