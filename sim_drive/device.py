@@ -257,12 +257,17 @@ class SimulatedDevice:
             over = np.flatnonzero(np.abs(chunk) > self.max_torque_nm)
             if over.size:  # the torque limit trips before the offending sample is applied
                 chunk, fault = chunk[: over[0]], ErrorCode.OVERCURRENT
-            response = self._plant.run_torque(chunk) if chunk.size else None
-        else:
-            response = self._plant.run_velocity(chunk, self.velocity_kp, self.velocity_ki, self.max_torque_nm)
+        snapshot = self._plant.snapshot()
+        response = self._play(chunk)
         n = 0 if response is None else len(response.motor_velocity)
         if response is not None:
-            n, fault = self._check_response(response, fault)
+            n, limit_fault = self._check_response(response)
+            if limit_fault is not None:
+                # the limit tripped at tick n-1: replay only up to it, so the fault
+                # reaction starts from the state the drive saw when it tripped
+                self._plant.restore(snapshot)
+                response = self._play(chunk[:n])
+                fault = limit_fault
             self._record(response, n)
         self.samples_run += 0 if response is None else len(response.motor_velocity)
         self._played = start + n
@@ -273,13 +278,21 @@ class SimulatedDevice:
         return n
 
     # -- internals ---------------------------------------------------------------------------
-    def _check_response(self, r: PlantResponse, fault: ErrorCode | None) -> tuple[int, ErrorCode | None]:
-        """Samples to keep and the fault tripped by the speed/travel limits (first violation wins)."""
+    def _play(self, chunk: NDArray[np.float64]) -> PlantResponse | None:
+        if chunk.size == 0:
+            return None
+        if self._mode is Mode.CYCLIC_SYNC_TORQUE:
+            return self._plant.run_torque(chunk)
+        return self._plant.run_velocity(chunk, self.velocity_kp, self.velocity_ki, self.max_torque_nm)
+
+    def _check_response(self, r: PlantResponse) -> tuple[int, ErrorCode | None]:
+        """Samples up to and including the first speed/travel violation, and its fault (None: all fine)."""
         n = len(r.motor_velocity)
+        fault: ErrorCode | None = None
         speed = np.abs(r.motor_velocity)
         travel = np.abs(r.motor_position - self._travel_origin_rad)
         if speed.max() <= self.max_speed_rad_s and travel.max() <= self.max_travel_rad:
-            return n, fault  # the common case, without searching
+            return n, None  # the common case, without searching
         fast = np.flatnonzero(speed > self.max_speed_rad_s)
         far = np.flatnonzero(travel > self.max_travel_rad)
         first = n

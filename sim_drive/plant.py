@@ -74,9 +74,10 @@ lives in the ``Plant`` object between calls.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 from numba import njit
@@ -179,6 +180,14 @@ class PlantState:
     applied_torque: float
     """Motor torque produced by the current loop at this instant, without noise [N·m]
     (ideal current loop: the last reference, held)."""
+
+
+@dataclass(frozen=True, eq=False)
+class PlantSnapshot:
+    """Opaque copy of a Plant's memory, from :meth:`Plant.snapshot`."""
+
+    memory: NDArray[np.float64]
+    rng_state: dict[str, Any]
 
 
 @dataclass(frozen=True, eq=False)  # eq on arrays is ambiguous: compare fields explicitly
@@ -607,6 +616,15 @@ class Plant:
             v_l=float(s[_VL]),
             applied_torque=float(s[_TC]),
         )
+
+    def snapshot(self) -> PlantSnapshot:
+        """Everything a later run depends on (state, encoder memory, integrator, noise stream)."""
+        return PlantSnapshot(self._s.copy(), copy.deepcopy(self._rng.bit_generator.state))
+
+    def restore(self, snapshot: PlantSnapshot) -> None:
+        """Return to a snapshot: the next run continues exactly as it would have from there."""
+        self._s[:] = snapshot.memory
+        self._rng.bit_generator.state = copy.deepcopy(snapshot.rng_state)
 
     def run_torque(self, torque_ref: ArrayLike) -> PlantResponse:
         """Cyclic synchronous torque: apply torque_ref [N·m], shape (N,), one value per sample."""

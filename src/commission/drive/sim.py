@@ -26,7 +26,7 @@ except ImportError as err:  # pragma: no cover - packaging error
     raise ImportError("the sim backend needs the sim_drive package (installed with drive-commission)") from err
 
 #: Ticks played per step of the device (25 ms at 8 kHz): the granularity of progress
-#: reports and of a host-side abort; the device checks its limits on every tick regardless.
+#: reports and of a host-side abort; the device trips its limits at the exact tick regardless.
 CHUNK_SAMPLES = 200
 
 
