@@ -1,0 +1,336 @@
+"""The paper's own procedure (steps 4–6 on top of an FRD fit), as a reproducible mode.
+
+Reading of the paper (hybrid-identification-backlash, Fig. 5) implemented here:
+
+* **Step 4** — the paper's eqs. 21–24 simulate v̂ = P̂(s)·(T_ref − T̂_s), which
+  feeds a shaft torque into the *whole* two-mass plant P̂ and is algebraically
+  inconsistent with it. The sane reading used here: map P̂ to physical
+  parameters (:func:`commission.ident.twomass.from_velocity_tf`) and simulate
+  the two-mass model *with the dead zone* between the masses
+  (:func:`commission.ident.backlash.simulate_deadzone`), driven by the measured
+  T_ref, with the fit's delay (``delay_samples = round(delay_s·fs)``; one
+  sample is the drive convention already inside the simulator). Loss: the
+  paper's eq. 31, L(ε) = max_t |v_m − v̂_m|. ε is searched on the paper's grid
+  [0.01°, 1°] step 0.01° by Bayesian optimisation (or the exhaustive grid).
+* **No backlash**: the range cannot say "none"; the loss is also evaluated at
+  ε = 0 and, if L(0) ≤ (1 + rel_tol)·L(ε*), the iteration reports ε = 0 and
+  ``backlash_detected = False``.
+* **Step 5** — FRD of the simulated output vs the measured FRD, both by the
+  same estimator from the same torque, so their common biases (leakage,
+  sampling delay) cancel. ``frd_error`` = sqrt(mean_k |Ĝ_sim(k) − G_meas(k)|² /
+  |G_meas(k)|²) over the bins in ``frd_band_hz`` — the relative RMS of the
+  complex difference, each bin weighted by 1/|G_meas| so that the decades of
+  the FRD count alike. Done when ``frd_error ≤ frd_tol``.
+* **Step 6** — remove the backlash's effect and refit (step 3). Two readings:
+  ``correction="output"`` (default): subtract the simulated nonlinear part from
+  the measurement, v_lin = v_m − (v̂_m(ε*) − v̂_m(0)); exact in the model if P̂
+  and ε* are right. ``correction="input"``: the paper's eq. 25–26, FRD of
+  v_m against T̂_input = T_ref + n̂ with n̂ the internal backlash torque of the
+  simulation (:func:`commission.ident.backlash.nonlinear_torque`; the paper's
+  −T̂_s) — approximate, because n̂ also acts on the load, which eq. 25 ignores.
+  ``correction="input_filtered"``: the consistent input-side version,
+  T̂_input = T_ref + F(s)·n̂ with F = (J_l s² + B_l s)/(J_l s² + (B_l + D) s + K)
+  = 1 − G_ml/G_mm, which accounts for the reaction on the load (n̂ filtered by
+  ``scipy.signal.lsim``, linear interpolation between ticks).
+  Iterate while ``frd_error`` decreases, at most ``max_iterations`` times; the
+  result is the iteration with the smallest ``frd_error``.
+
+METHOD.md predicts (and the bench shows) that this procedure is only as good
+as the linear fit it starts from: with a biased fit the loss grows
+monotonically with ε and the search returns 0.01°.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from commission.exceptions import IdentificationError
+from commission.ident.backlash import (
+    EPSILON_BOUNDS_RAD,
+    EPSILON_RESOLUTION_RAD,
+    EpsilonSearch,
+    max_output_error,
+    nonlinear_torque,
+    search_epsilon_bayes,
+    search_epsilon_grid,
+    simulate_deadzone,
+    simulate_motor_velocity,
+)
+from commission.ident.twomass import TwoMassParameters
+
+__all__ = ["PaperIteration", "PaperIdentification", "frd_error", "paper_identify"]
+
+
+class _FRDLike(Protocol):
+    frequency_hz: NDArray[np.float64]
+    response: NDArray[np.complex128]
+
+
+class _FitLike(Protocol):
+    num: NDArray[np.float64]
+    den: NDArray[np.float64]
+    delay_s: float
+
+
+LinearFit = tuple[ArrayLike, ArrayLike, float] | TwoMassParameters | _FitLike
+
+
+@dataclass(frozen=True)
+class PaperIteration:
+    """One pass of steps 4–5 (and the refit of step 6 that produced ``params``)."""
+
+    index: int
+    """0 = the linear fit given to :func:`paper_identify`."""
+    params: TwoMassParameters
+    """Linear two-mass parameters used in this pass."""
+    delay_s: float
+    """Delay of the linear fit [s] (simulated as round(delay_s·fs) samples)."""
+    epsilon_rad: float
+    """ε found by step 4 [rad] (0 if L(0) is as good, see ``backlash_detected``)."""
+    backlash_detected: bool
+    """False if ε = 0 explains the data as well as the best ε of the grid."""
+    loss: float
+    """Paper loss (eq. 31) at ``epsilon_rad`` [rad/s]."""
+    frd_error: float
+    """Step-5 FRD mismatch (module docstring), dimensionless."""
+    search: EpsilonSearch
+    """The ε search of this pass."""
+
+    @property
+    def epsilon_deg(self) -> float:
+        return math.degrees(self.epsilon_rad)
+
+
+@dataclass(frozen=True)
+class PaperIdentification:
+    """Result of :func:`paper_identify`; the chosen pass is the one with the least ``frd_error``."""
+
+    params: TwoMassParameters
+    epsilon_rad: float
+    delay_s: float
+    frd_error: float
+    backlash_detected: bool
+    iterations: tuple[PaperIteration, ...]
+    stop_reason: str
+    """"frd_tol" (close enough), "frd_error increased", "max_iterations",
+    "no backlash detected" (step 6 has nothing to remove), or
+    "refit failed: …" (step 6 gave no physical two-mass model)."""
+    timings_s: dict[str, float] = field(default_factory=dict)
+    """Wall time per stage [s]: "search" (step 4), "frd" (steps 2/5/6 FRDs),
+    "fit" (step 3 refits), "simulate" (steps 5/6 simulations), "total"."""
+
+    @property
+    def epsilon_deg(self) -> float:
+        return math.degrees(self.epsilon_rad)
+
+
+def frd_error(
+    reference: _FRDLike, other: _FRDLike, band_hz: tuple[float, float] = (1.0, 400.0)
+) -> float:
+    """sqrt(mean_k |G_other − G_ref|² / |G_ref|²) over the common bins inside ``band_hz``.
+
+    :raises IdentificationError: the FRDs are on different bins, or no bin in the band.
+    """
+    f = np.asarray(reference.frequency_hz, dtype=float)
+    if f.shape != np.shape(other.frequency_hz) or not np.allclose(f, other.frequency_hz):
+        raise IdentificationError("the two FRDs are not on the same frequency bins")
+    m = (f >= band_hz[0]) & (f <= band_hz[1])
+    if not np.any(m):
+        raise IdentificationError(f"no FRD bin inside {band_hz} Hz")
+    g0 = np.asarray(reference.response)[m]
+    g1 = np.asarray(other.response)[m]
+    return float(np.sqrt(np.mean(np.abs(g1 - g0) ** 2 / np.abs(g0) ** 2)))
+
+
+def _linear_parameters(linear_fit: Any, sample_rate_hz: float,
+                       to_params: Callable[[Any, Any], TwoMassParameters]) -> tuple[TwoMassParameters, float]:
+    if isinstance(linear_fit, TwoMassParameters):
+        return linear_fit, 1.0 / sample_rate_hz
+    if isinstance(linear_fit, tuple):
+        num, den, delay = linear_fit
+    else:
+        num, den, delay = linear_fit.num, linear_fit.den, linear_fit.delay_s
+    return to_params(np.asarray(num, float), np.asarray(den, float)), float(delay)
+
+
+def _load_reaction_filter(params: TwoMassParameters, n: NDArray[np.float64], fs: float) -> NDArray[np.float64]:
+    """F(s)·n, F = (J_l s² + B_l s)/(J_l s² + (B_l + D)s + K): the part of the internal
+    torque pair (+n on the motor, −n on the load) seen at the motor velocity,
+    as an equivalent motor torque."""
+    from scipy.signal import lsim
+
+    t = np.arange(n.size) / fs
+    num = [params.J_l, params.B_l, 0.0]
+    den = [params.J_l, params.B_l + params.D, params.K]
+    _, y, _ = lsim((num, den), n, t)
+    return np.asarray(y, dtype=float)
+
+
+def paper_identify(
+    torque_ref: ArrayLike,
+    motor_velocity: ArrayLike,
+    sample_rate_hz: float,
+    linear_fit: LinearFit,
+    *,
+    search: Literal["bayes", "grid"] = "bayes",
+    bounds_rad: tuple[float, float] = EPSILON_BOUNDS_RAD,
+    resolution_rad: float = EPSILON_RESOLUTION_RAD,
+    correction: Literal["output", "input", "input_filtered"] = "output",
+    max_iterations: int = 5,
+    frd_tol: float = 0.01,
+    frd_band_hz: tuple[float, float] = (1.0, 400.0),
+    rel_tol: float = 0.05,
+    seed: int = 0,
+    bayes_kwargs: dict[str, Any] | None = None,
+    fixed_epsilon_rad: float | None = None,
+    estimate_frd: Callable[..., Any] | None = None,
+    fit_transfer_function: Callable[..., Any] | None = None,
+    from_velocity_tf: Callable[[Any, Any], TwoMassParameters] | None = None,
+) -> PaperIdentification:
+    """The paper's steps 4–6 given a linear fit (step 3), iterated (module docstring).
+
+    :param torque_ref: torque reference [N·m], shape (N,).
+    :param motor_velocity: measured motor velocity [rad/s], shape (N,), drive convention.
+    :param sample_rate_hz: [Hz].
+    :param linear_fit: ``(num, den, delay_s)`` of V_m/T_ref, an object with
+        ``num``/``den``/``delay_s`` (e.g. a ``TransferFunctionFit``), or
+        ``TwoMassParameters`` (delay = one sample, the drive convention).
+    :param search: "bayes" (paper) or "grid" (exhaustive).
+    :param correction: step-6 reading, "output", "input" or "input_filtered"
+        (module docstring).
+    :param max_iterations: passes of steps 4–5 at most (≥ 1); step 6 runs between passes.
+    :param frd_tol: step-5 "close enough" threshold on ``frd_error``.
+    :param fixed_epsilon_rad: skip step 4 and use this ε in every pass (to study
+        step 6 on its own, e.g. with the true ε).
+    :param estimate_frd, fit_transfer_function, from_velocity_tf: steps 2, 3
+        and the coefficient → parameter map; default: the package's
+        ``commission.ident.frd.estimate_frd``,
+        ``commission.ident.tffit.fit_transfer_function`` and
+        ``commission.ident.twomass.from_velocity_tf``.
+    :raises IdentificationError: bad inputs, or the initial fit is not a physical plant.
+    """
+    t_total = time.perf_counter()
+    if estimate_frd is None:
+        from commission.ident.frd import estimate_frd as _est
+
+        estimate_frd = _est
+    if fit_transfer_function is None:
+        from commission.ident.tffit import fit_transfer_function as _fit
+
+        fit_transfer_function = _fit
+    if from_velocity_tf is None:
+        from commission.ident.twomass import from_velocity_tf as _ftf
+
+        from_velocity_tf = _ftf
+    tau = np.asarray(torque_ref, dtype=float)
+    v_m = np.asarray(motor_velocity, dtype=float)
+    if tau.shape != v_m.shape or tau.ndim != 1:
+        raise IdentificationError(f"torque_ref {tau.shape} and motor_velocity {v_m.shape} differ")
+    fs = float(sample_rate_hz)
+    if max_iterations < 1:
+        raise IdentificationError("max_iterations must be >= 1")
+
+    timings = {"search": 0.0, "frd": 0.0, "fit": 0.0, "simulate": 0.0}
+    params, delay_s = _linear_parameters(linear_fit, fs, from_velocity_tf)
+
+    t0 = time.perf_counter()
+    frd_meas = estimate_frd(tau, v_m, fs)
+    timings["frd"] += time.perf_counter() - t0
+
+    iterations: list[PaperIteration] = []
+    stop_reason = "max_iterations"
+    for it in range(max_iterations):
+        d = max(0, int(round(delay_s * fs)))
+
+        def loss(eps: float, _p: TwoMassParameters = params, _d: int = d) -> float:
+            return max_output_error(v_m, simulate_motor_velocity(_p, eps, tau, fs, delay_samples=_d))
+
+        # step 4
+        t0 = time.perf_counter()
+        if fixed_epsilon_rad is not None:
+            fe = float(fixed_epsilon_rad)
+            res = EpsilonSearch(epsilon_rad=fe, loss=loss(fe), evaluations=1, history=[],
+                                interval_rad=(fe, fe), method="grid")
+        elif search == "bayes":
+            kw = {"seed": seed, "rel_tol": rel_tol}
+            kw.update(bayes_kwargs or {})
+            res = search_epsilon_bayes(loss, bounds_rad, resolution_rad, **kw)
+        else:
+            res = search_epsilon_grid(loss, bounds_rad, resolution_rad, rel_tol=rel_tol)
+        loss0 = loss(0.0)
+        timings["search"] += time.perf_counter() - t0
+        detected = fixed_epsilon_rad is not None or not (loss0 <= (1.0 + rel_tol) * res.loss)
+        eps = res.epsilon_rad if detected else 0.0
+        # step 5
+        t0 = time.perf_counter()
+        sim = simulate_deadzone(params, eps, tau, fs, delay_samples=d)
+        sim0 = simulate_deadzone(params, 0.0, tau, fs, delay_samples=d) if eps > 0 else sim
+        timings["simulate"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        err = frd_error(frd_meas, estimate_frd(tau, sim.motor_velocity, fs), frd_band_hz)
+        timings["frd"] += time.perf_counter() - t0
+        iterations.append(PaperIteration(
+            index=it, params=params, delay_s=delay_s, epsilon_rad=eps, backlash_detected=detected,
+            loss=res.loss if detected else loss0, frd_error=err, search=res,
+        ))
+        if err <= frd_tol:
+            stop_reason = "frd_tol"
+            break
+        if it > 0 and err >= iterations[-2].frd_error:
+            stop_reason = "frd_error increased"
+            break
+        if it == max_iterations - 1:
+            break
+        if not detected or eps == 0.0:
+            stop_reason = "no backlash detected"
+            break
+        # step 6: remove the backlash's effect, refit
+        t0 = time.perf_counter()
+        if correction == "output":
+            frd_new = estimate_frd(tau, v_m - (sim.motor_velocity - sim0.motor_velocity), fs)
+        elif correction in ("input", "input_filtered"):
+            n_hat = nonlinear_torque(params, eps, sim.twist,
+                                     sim.motor_velocity_instant - sim.load_velocity_instant)
+            # the torque acting over [k, k+1) is tau[k − d + 1]: align n̂ with it
+            shift = d - 1
+            n_al = np.zeros_like(n_hat)
+            if shift >= 0:
+                n_al[: n_hat.size - shift] = n_hat[shift:]
+            else:
+                n_al[1:] = n_hat[:-1]
+            if correction == "input_filtered":
+                n_al = _load_reaction_filter(params, n_al, fs)
+            frd_new = estimate_frd(tau + n_al, v_m, fs)
+        else:
+            raise IdentificationError(f"unknown correction {correction!r}")
+        timings["frd"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        try:
+            fit = fit_transfer_function(frd_new)
+            params = from_velocity_tf(np.asarray(fit.num, float), np.asarray(fit.den, float))
+            delay_s = float(fit.delay_s)
+        except IdentificationError as err_fit:
+            timings["fit"] += time.perf_counter() - t0
+            stop_reason = f"refit failed: {err_fit}"
+            break
+        timings["fit"] += time.perf_counter() - t0
+
+    best = min(iterations, key=lambda r: r.frd_error)
+    timings["total"] = time.perf_counter() - t_total
+    return PaperIdentification(
+        params=best.params,
+        epsilon_rad=best.epsilon_rad,
+        delay_s=best.delay_s,
+        frd_error=best.frd_error,
+        backlash_detected=best.backlash_detected,
+        iterations=tuple(iterations),
+        stop_reason=stop_reason,
+        timings_s=timings,
+    )
