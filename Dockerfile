@@ -6,6 +6,7 @@ COPY src ./src
 COPY sim_drive ./sim_drive
 COPY configs ./configs
 COPY drivers ./drivers
+ENV COMMISSION_DRIVERS=/opt/drive-commission/drivers
 RUN pip install --no-cache-dir . && useradd --create-home commission
 USER commission
 WORKDIR /home/commission

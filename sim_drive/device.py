@@ -89,6 +89,17 @@ class Trace:
 _TRACE_SIGNALS = ("torque_ref", "motor_position", "motor_velocity", "load_position", "load_velocity")
 
 
+@dataclass(frozen=True)
+class CyclicSample:
+    """What the drive latches at one cycle of host-streamed operation (SI units)."""
+
+    motor_position: float  # rad, encoder-quantised
+    motor_velocity: float  # rad/s, (q[k] - q[k-1]) / Ts at the drive's tick
+    load_position: float  # rad
+    load_velocity: float  # rad/s
+    torque_nm: float  # torque reference applied from this instant on (0 unless enabled)
+
+
 class SimulatedDevice:
     """A CiA 402 servo drive with a two-mass + backlash axis behind it.
 
@@ -138,6 +149,8 @@ class SimulatedDevice:
         self._pending: dict[InjectedFault, int] = {}
         self.communication_lost = False
         self.samples_run = 0  # every sample the plant has run, for tests
+        self._cyclic_ticks = 0  # ticks run by step_cyclic (host-streamed operation)
+        self._last_cyclic: CyclicSample | None = None
 
     # -- CiA 402 -----------------------------------------------------------------------
     @property
@@ -228,6 +241,11 @@ class SimulatedDevice:
         """(samples played, samples in the waveform)."""
         return self._played, 0 if self._waveform is None else self._waveform.size
 
+    @property
+    def trace_length(self) -> int:
+        """Samples in the trace buffer (recorded since the last start)."""
+        return self._trace_len
+
     def trace(self) -> Trace:
         """Everything traced since the last start (a copy)."""
         n = self._trace_len
@@ -276,6 +294,62 @@ class SimulatedDevice:
         elif self._played >= self._waveform.size:
             self._playing = False
         return n
+
+    def trip(self, code: ErrorCode) -> None:
+        """Enter the fault reaction with ``code``: a fieldbus front-end's own watchdogs
+        (e.g. the CANopen heartbeat consumer 0x1016 when the host falls silent)."""
+        self._enter_fault(ErrorCode(code))
+
+    # -- host-streamed (cyclic synchronous) operation ---------------------------------------
+    def step_cyclic(self, references: NDArray[np.float64]) -> CyclicSample | None:
+        """Run one cycle of host-streamed CST/CSV: tick i holds ``references[i]``.
+
+        A fieldbus front-end calls this on each SYNC with the previous target held
+        for the ticks elapsed since the last SYNC, then the new target for one tick,
+        so the returned sample is the one latched at this SYNC (start of the last
+        tick), before the new target acts. Limits trip exactly as in :meth:`advance`;
+        pending injected faults count ticks of this cyclic run. Nothing moves
+        unless the drive is in Operation enabled (then the last sample is repeated).
+        """
+        refs = np.asarray(references, dtype=np.float64)
+        if refs.ndim != 1 or refs.size == 0:
+            raise ValueError("references must be a non-empty 1-D array")
+        if self._state is not State.OPERATION_ENABLED or self._playing:
+            return self._last_cyclic
+        start = self._cyclic_ticks
+        for kind, at in list(self._pending.items()):
+            if at <= start:
+                self._trigger(kind)
+                return self._last_cyclic
+            refs = refs[: max(0, at - start)] if at < start + refs.size else refs
+        fault: ErrorCode | None = None
+        if self._mode is Mode.CYCLIC_SYNC_TORQUE:
+            over = np.flatnonzero(np.abs(refs) > self.max_torque_nm)
+            if over.size:
+                refs, fault = refs[: over[0]], ErrorCode.OVERCURRENT
+        snapshot = self._plant.snapshot()
+        response = self._play(refs)
+        if response is not None:
+            n, limit_fault = self._check_response(response)
+            if limit_fault is not None:
+                self._plant.restore(snapshot)
+                response = self._play(refs[:n])
+                fault = limit_fault
+            assert response is not None
+            self.samples_run += len(response.motor_velocity)
+            self._cyclic_ticks += len(response.motor_velocity)
+            self._last_cyclic = CyclicSample(
+                motor_position=float(response.motor_position[-1]),
+                motor_velocity=float(response.motor_velocity[-1]),
+                load_position=float(response.load_position[-1]),
+                load_velocity=float(response.load_velocity[-1]),
+                torque_nm=float(response.torque_ref[-1]),
+            )
+        if fault is not None:
+            self._enter_fault(fault)
+        elif self._pending and min(self._pending.values()) <= self._cyclic_ticks:
+            self._trigger(min(self._pending, key=lambda k: self._pending[k]))
+        return self._last_cyclic
 
     # -- internals ---------------------------------------------------------------------------
     def _play(self, chunk: NDArray[np.float64]) -> PlantResponse | None:

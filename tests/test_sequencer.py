@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from commission.config import Config, SafetyConfig
-from commission.drive import State, open_drive
+from commission.drive import DriveError, State, open_drive
 from commission.drive.sim import SimDrive
 from commission.exceptions import Aborted, DriveFault, DriveNotFound, DriveTimeout, SafetyLimitExceeded
 from commission.mcaplog import read_recording
@@ -100,8 +100,10 @@ def test_refuses_a_drive_in_fault(tmp_path):
 def test_unknown_ports():
     with pytest.raises(DriveNotFound, match="/dev/ttyNOPE0 does not exist"):
         open_drive(port="/dev/ttyNOPE0")
-    with pytest.raises(DriveNotFound, match="not available in this version"):
-        open_drive(port="can0")
+    with pytest.raises(DriveError, match="cannot open CAN interface 'socketcan' channel 'nocan7'"):
+        open_drive(port="nocan7")  # no such SocketCAN link on any machine
+    with pytest.raises(DriveNotFound, match="Modbus RTU backend.*not available in this version"):
+        open_drive(port="/dev/null", protocol="modbus")
     with pytest.raises(DriveNotFound, match="no drive given"):
         open_drive()
 

@@ -17,18 +17,21 @@ from .cia402 import Mode, State
 
 __all__ = [
     "BACKENDS", "Drive", "DriveError", "DriveFault", "DriveInfo", "DriveNotFound", "DriveTimeout",
-    "Mode", "ProgressCallback", "State", "open_drive",
+    "Mode", "ProgressCallback", "SIM_LINKS", "State", "open_drive",
 ]
 
 #: backend name -> (module, class). Backends still to come (issue #4, #5) are listed
 #: in PLANNED so the error says so instead of "unknown".
 BACKENDS: dict[str, tuple[str, str]] = {
     "sim": ("commission.drive.sim", "SimDrive"),
+    "canopen": ("commission.drive.canopen", "CanopenDrive"),
 }
 PLANNED: dict[str, str] = {
-    "canopen": "the CANopen CiA 402 backend",
     "modbus": "the Modbus RTU backend",
 }
+#: How ``--sim`` reaches the simulated drive: directly, or as a CANopen node on python-can's
+#: in-process ``virtual`` bus with the canopen backend in front of it.
+SIM_LINKS = ("direct", "canopen")
 
 
 def _backend_class(name: str) -> type[Drive]:
@@ -52,11 +55,14 @@ def open_drive(
     interface: str | None = None,
     protocol: str | None = None,
     sim_plant: dict[str, Any] | None = None,
+    sim_link: str = "direct",
     **options: Any,
 ) -> Drive:
     """Open the drive a command line describes.
 
     :param sim: the built-in simulated drive (``sim_plant``: its plant parameters).
+    :param sim_link: ``direct`` (default) or ``canopen``: the simulated drive as a CANopen node on
+        the in-process virtual bus, driven by the canopen backend (``options`` go to it).
     :param port: ``can0``-style CAN channel, or a serial device path.
     :param interface: python-can interface (``socketcan``, ``slcan``, …) for CAN ports.
     :param protocol: ``canopen`` (default for CAN) or ``modbus`` (serial service ports).
@@ -64,6 +70,15 @@ def open_drive(
     if sim:
         if port is not None:
             raise DriveError("choose either --sim or --port, not both")
+        if sim_link == "canopen":
+            try:
+                module = importlib.import_module("commission.drive.canopen")
+            except ImportError as err:
+                raise DriveError(f"backend 'canopen' cannot be loaded: {err}") from err
+            drive: Drive = module.open_simulated(sim_plant, **options)
+            return drive
+        if sim_link != "direct":
+            raise DriveError(f"unknown --sim-link '{sim_link}' (choose from {', '.join(SIM_LINKS)})")
         return _backend_class("sim")(plant=sim_plant)
     if not port:
         raise DriveNotFound("no drive given: use --port PORT, --sim, or --replay FILE")

@@ -1,0 +1,272 @@
+"""Drive descriptions: what a drive family's object dictionary means, loaded from ``drivers/<name>/``.
+
+A description is data (``description.yaml`` + an EDS file); the CANopen backend
+reads from it which objects carry the waveform, the trace, the trigger and the
+progress, how the bus integers scale to SI units, and the vendor parameters a
+tuning result maps to. No object index of a vendor area appears in code.
+
+Where the folders are found (first that exists):
+
+1. ``$COMMISSION_DRIVERS`` (the Docker image should set it to
+   ``/opt/drive-commission/drivers``);
+2. ``drivers/`` of the source tree this package was imported from (editable install).
+
+Errors are one-liners: an unknown drive name or a missing folder is a
+:class:`~commission.exceptions.ConfigError`, as is an invalid description file.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from enum import Enum
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from ..exceptions import ConfigError
+
+__all__ = [
+    "DRIVERS_ENV", "ChannelUnit", "DriveDescription", "ExcitationMethod", "ObjectRef", "ParameterSpec",
+    "TraceChannel", "drivers_dir", "list_drives", "load_description",
+]
+
+#: Environment variable naming the folder of drive descriptions.
+DRIVERS_ENV = "COMMISSION_DRIVERS"
+DESCRIPTION_FILE = "description.yaml"
+
+#: struct format and size of the integer types a description may use.
+INT_TYPES: dict[str, tuple[str, int]] = {
+    "int8": ("b", 1), "uint8": ("B", 1), "int16": ("h", 2), "uint16": ("H", 2),
+    "int32": ("i", 4), "uint32": ("I", 4), "real32": ("f", 4), "real64": ("d", 8),
+}
+IntType = Literal["int8", "uint8", "int16", "uint16", "int32", "uint32", "real32", "real64"]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ObjectRef(_Model):
+    """One object of the dictionary: ``{index: 0x2100, subindex: 1}``."""
+
+    index: int = Field(ge=0x1000, le=0xFFFF)
+    subindex: int = Field(0, ge=0, le=0xFF)
+
+    def __str__(self) -> str:
+        return f"0x{self.index:04X}:{self.subindex:02X}"
+
+
+class ExcitationMethod(str, Enum):
+    """How the excitation reaches the drive."""
+
+    TRACE = "trace"
+    """The drive plays a downloaded waveform from its own clock and records a trace (primary path)."""
+    STREAMED = "streamed"
+    """The host streams target torque by SYNC + RPDO and records TPDO feedback (fallback)."""
+
+
+class ChannelUnit(str, Enum):
+    """Unit of an integer on the bus, before the channel's ``scale``."""
+
+    RATED_TORQUE = "rated_torque"
+    """fraction of the motor rated torque (0x6076): N·m = raw · scale · rated."""
+    INCREMENT = "increment"
+    """encoder increments: rad = raw · scale · 2π / increments per revolution."""
+    INCREMENT_PER_SAMPLE = "increment_per_sample"
+    """increments per trace sample: rad/s = raw · scale · 2π / increments · sample rate."""
+    INCREMENT_PER_SECOND = "increment_per_second"
+    """increments per second: rad/s = raw · scale · 2π / increments."""
+
+
+class TraceChannel(_Model):
+    """One recorded signal: an INT32 array (little-endian) in a DOMAIN object."""
+
+    object: ObjectRef
+    type: IntType = "int32"
+    unit: ChannelUnit
+    scale: float = Field(1.0, gt=0)
+    encoder: Literal["motor", "load"] = "motor"
+
+
+class WaveformSpec(_Model):
+    """The waveform player: samples (DOMAIN of ``type``), its clock and capacity."""
+
+    samples: ObjectRef
+    type: IntType = "int32"
+    torque_unit: ChannelUnit = ChannelUnit.RATED_TORQUE
+    torque_scale: float = Field(1e-6, gt=0, description="CST samples: fraction of rated torque per count")
+    velocity_unit: ChannelUnit = ChannelUnit.INCREMENT_PER_SECOND
+    velocity_scale: float = Field(1.0, gt=0, description="CSV samples: increments/s per count")
+    sample_period_ns: ObjectRef | None = None
+    capacity: ObjectRef | None = None
+
+
+class TraceSpec(_Model):
+    """Everything the primary path needs: waveform, trigger, progress, trace channels."""
+
+    waveform: WaveformSpec
+    start: ObjectRef
+    start_value: int = 1
+    stop_value: int = 0
+    progress: ObjectRef
+    """samples played so far (UNSIGNED32)."""
+    length: ObjectRef
+    """samples recorded in the trace (UNSIGNED32)."""
+    channels: dict[str, TraceChannel]
+
+    @model_validator(mode="after")
+    def _known_signals(self) -> TraceSpec:
+        known = {"torque_ref", "motor_position", "motor_velocity", "load_position", "load_velocity"}
+        unknown = sorted(set(self.channels) - known)
+        if unknown:
+            raise ValueError(f"unknown trace signal(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
+        for needed in ("torque_ref", "motor_velocity"):
+            if needed not in self.channels:
+                raise ValueError(f"trace must record '{needed}'")
+        return self
+
+
+class StreamedSpec(_Model):
+    """The host-streamed fallback (standard objects; PDO numbers configurable)."""
+
+    rpdo: int = Field(1, ge=1, le=4, description="RPDO number carrying target torque 0x6071")
+    tpdo: tuple[int, int] = Field((1, 2), description="TPDOs: (0x6064 + 0x606C, 0x6077 + 0x6041)")
+    max_load: float = Field(0.8, gt=0, le=1.0, description="largest bus load allowed")
+
+
+class ParameterSpec(_Model):
+    """A named drive parameter: ``value [unit] = raw · scale``; ``min``/``max`` bound ``raw``."""
+
+    object: ObjectRef
+    type: IntType
+    unit: str = ""
+    scale: float = Field(1.0, gt=0)
+    min: float | None = None
+    max: float | None = None
+    maps_to: str = Field("", description="what a tuning result writes here")
+    note: str = ""
+
+
+class UnitsSpec(_Model):
+    """Where the unit scaling comes from (standard CiA 402 objects by default)."""
+
+    rated_torque_mnm: ObjectRef = ObjectRef(index=0x6076)
+    motor_increments: ObjectRef | None = ObjectRef(index=0x608F, subindex=1)
+    motor_revolutions: ObjectRef | None = ObjectRef(index=0x608F, subindex=2)
+    motor_increments_per_rev: int | None = Field(None, gt=0, description="used when the drive has no 0x608F")
+    load_increments: ObjectRef | None = None
+    load_increments_per_rev: int | None = Field(None, gt=0)
+    velocity_unit: ChannelUnit = ChannelUnit.INCREMENT_PER_SECOND
+    """unit of 0x606C velocity actual value."""
+
+
+class DriveDescription(_Model):
+    """One drive family (``drivers/<name>/description.yaml``)."""
+
+    name: str
+    summary: str = ""
+    eds: str = Field(description="EDS file name in the same folder")
+    device_type_profile: int = Field(402, description="low 16 bits of 0x1000")
+    node_id: int = Field(1, ge=1, le=127, description="default node id")
+    bitrate: int = Field(1_000_000, gt=0, description="bit rate assumed for the bus budget when the adapter has none")
+    heartbeat_ms: int = Field(100, ge=10, le=60_000, description="producer heartbeat written to 0x1017")
+    heartbeat_timeout_ms: int = Field(500, ge=10, description="consumer: link lost after this long without one")
+    host_node_id: int = Field(127, ge=1, le=127, description="node id of the host's own heartbeat, which the "
+                              "drive watches through 0x1016 (same consumer time) when it has that object")
+    sdo_timeout_s: float = Field(0.3, gt=0, le=10)
+    drive_sample_rate_hz: float = Field(8000.0, gt=0, description="the drive's control/trace clock")
+    excitation: ExcitationMethod
+    trace: TraceSpec | None = None
+    streamed: StreamedSpec = StreamedSpec()
+    units: UnitsSpec = UnitsSpec()
+    error_codes: dict[int, str] = Field(default_factory=dict, description="0x603F / EMCY code -> text")
+    parameters: dict[str, ParameterSpec] = Field(default_factory=dict)
+    folder: Path = Field(Path("."), exclude=True)
+
+    @model_validator(mode="after")
+    def _trace_if_needed(self) -> DriveDescription:
+        if self.excitation is ExcitationMethod.TRACE and self.trace is None:
+            raise ValueError("excitation 'trace' needs a 'trace' section")
+        return self
+
+    @property
+    def eds_path(self) -> Path:
+        return self.folder / self.eds
+
+    def describe_error(self, code: int) -> str:
+        """Readable text of a 0x603F / EMCY error code (the description's, else the CiA 301 class)."""
+        if code in self.error_codes:
+            return self.error_codes[code]
+        return _CIA301_CLASSES.get(code & 0xFF00) or _CIA301_CLASSES.get(code & 0xF000) or "unknown error"
+
+    def parameter(self, name: str) -> ParameterSpec:
+        try:
+            return self.parameters[name]
+        except KeyError:
+            known = ", ".join(sorted(self.parameters)) or "none"
+            raise ConfigError(f"drive '{self.name}' has no parameter '{name}' (known: {known})") from None
+
+
+_CIA301_CLASSES = {
+    0x1000: "generic error", 0x2000: "current", 0x3000: "voltage", 0x4000: "temperature",
+    0x5000: "device hardware", 0x6000: "device software", 0x7000: "additional modules",
+    0x8000: "monitoring", 0x9000: "external error", 0xF000: "additional functions", 0xFF00: "device specific",
+}
+
+
+def drivers_dir() -> Path:
+    """The folder of drive descriptions ($COMMISSION_DRIVERS, else the source tree's ``drivers/``)."""
+    env = os.environ.get(DRIVERS_ENV)
+    if env:
+        path = Path(env)
+        if not path.is_dir():
+            raise ConfigError(f"${DRIVERS_ENV} is {env}, which is not a folder")
+        return path
+    repo = Path(__file__).resolve().parents[3] / "drivers"
+    if repo.is_dir():
+        return repo
+    raise ConfigError(
+        f"no drive descriptions found: set ${DRIVERS_ENV} to the drivers/ folder (looked in {repo})"
+    )
+
+
+def list_drives() -> list[str]:
+    """Names of the drive families available."""
+    return sorted(p.name for p in drivers_dir().iterdir() if (p / DESCRIPTION_FILE).is_file())
+
+
+def load_description(name_or_path: str | Path) -> DriveDescription:
+    """Load ``drivers/<name>/description.yaml`` (or a folder path); errors name the file and key."""
+    candidate = Path(name_or_path)
+    folder = candidate if (candidate / DESCRIPTION_FILE).is_file() else drivers_dir() / str(name_or_path)
+    path = folder / DESCRIPTION_FILE
+    if not path.is_file():
+        try:
+            known = ", ".join(list_drives()) or "none"
+        except ConfigError:
+            known = "none"
+        raise ConfigError(f"unknown drive '{name_or_path}' (known: {known})")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML") from err
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a drive description must be a mapping")
+    try:
+        desc = DriveDescription.model_validate({**data, "folder": folder})
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(p) for p in first["loc"]) or "(top level)"
+        msg = "unknown key" if first["type"] == "extra_forbidden" else first["msg"]
+        raise ConfigError(f"{path}: {where}: {msg}") from err
+    if not desc.eds_path.is_file():
+        raise ConfigError(f"{path}: EDS file {desc.eds} not found in {folder}")
+    return desc
+
+
+def increments_to_rad(increments_per_rev: float) -> float:
+    """rad per encoder increment."""
+    return 2.0 * math.pi / increments_per_rev
