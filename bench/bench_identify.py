@@ -1,0 +1,197 @@
+"""Accuracy and speed of the identification methods over a spread of simulated plants.
+
+For each plant (sim_drive.plant, 24-bit encoders, 1e-4 N·m torque noise, the
+default chirp, motor-side data only) and each method, prints the error of
+every identified quantity — ε in degrees, J_m, J_l, B_m, B_l, K, D and the
+resonance / anti-resonance frequencies in percent — the time of each stage
+and the evaluation counts of the search (hybrid: the coarse grid used by
+default, and for comparison the full-resolution grid and the Bayesian search).
+
+    python bench/bench_identify.py            # full spread, both methods
+    python bench/bench_identify.py --quick    # a subset
+    python bench/bench_identify.py --no-paper # hybrid only
+
+Unmodelled effects (Coulomb friction 0.01 N·m, 1 kHz current-loop lag) are
+reported as they are: the model has no term for them yet.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+
+
+from commission.config import ExcitationConfig
+from commission.exceptions import IdentificationError
+from commission.excitation import chirp
+from commission.ident.hybrid import IdentificationOptions, Method, identify
+from commission.ident.twomass import TwoMassParameters, modes
+from commission.recording import Recording
+from sim_drive.plant import Plant, PlantParameters
+
+FS = 8000.0
+J_M = 4.78e-4
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    ratio: float          # J_l / J_m
+    f_r_hz: float         # resonance
+    zeta: float           # resonance damping (sets D)
+    eps_deg: float
+    coulomb_nm: float = 0.0
+    lag_hz: float | None = None
+    B_l: float | None = None
+
+    def params(self) -> TwoMassParameters:
+        if self.name.startswith("reference"):
+            return TwoMassParameters(J_m=4.78e-4, J_l=1.92e-4, B_m=0.84e-2, B_l=0.53e-2, K=23.10, D=1.54e-2)
+        J_l = self.ratio * J_M
+        w = 2 * math.pi * self.f_r_hz
+        K = w * w * J_l / (1 + self.ratio)
+        D = 2 * self.zeta * w / (1 / J_M + 1 / J_l)
+        B_l = self.B_l if self.B_l is not None else 0.53e-2 * math.sqrt(self.ratio / 0.4)
+        return TwoMassParameters(J_m=J_M, J_l=J_l, B_m=0.84e-2, B_l=B_l, K=K, D=D)
+
+
+FULL = [
+    Case("reference", 0.4, 65.4, 0.167, 0.40),
+    Case("reference eps=0", 0.4, 65.4, 0.167, 0.0),
+    Case("reference eps=0.9", 0.4, 65.4, 0.167, 0.90),
+    Case("stiff light 150Hz", 0.2, 150, 0.33, 0.25, B_l=1.0e-2),
+    Case("stiff light 200Hz", 0.2, 200, 0.11, 0.25, B_l=0.3e-2),
+    Case("mid 100Hz", 1.0, 100, 0.15, 0.10),
+    Case("stiff 300Hz", 2.0, 300, 0.15, 0.50),
+    Case("heavy 40Hz", 0.5, 40, 0.2, 0.90),
+    Case("soft heavy 25Hz", 4.0, 25, 0.17, 0.60, B_l=1.5e-2),
+    Case("soft heavy 20Hz", 5.0, 20, 0.15, 0.30),
+    Case("reference +coulomb", 0.4, 65.4, 0.167, 0.40, coulomb_nm=0.01),
+    Case("reference +lag1k", 0.4, 65.4, 0.167, 0.40, lag_hz=1000.0),
+    Case("reference +both", 0.4, 65.4, 0.167, 0.40, coulomb_nm=0.01, lag_hz=1000.0),
+    Case("soft heavy +both", 4.0, 25, 0.17, 0.60, coulomb_nm=0.01, lag_hz=1000.0, B_l=1.5e-2),
+]
+QUICK_NAMES = {"reference", "reference eps=0", "stiff light 150Hz", "soft heavy 25Hz",
+               "reference +coulomb", "reference +lag1k"}
+
+
+def record(case: Case) -> Recording:
+    p = case.params()
+    tau = chirp(ExcitationConfig()).samples
+    pp = PlantParameters(**p.as_dict(), epsilon_deg=case.eps_deg, torque_noise_nm=1e-4, seed=7,
+                         coulomb_motor_nm=case.coulomb_nm, coulomb_load_nm=case.coulomb_nm,
+                         current_loop_bandwidth_hz=case.lag_hz)
+    r = Plant(pp, FS).run_torque(tau)
+    return Recording.uniform(FS, r.torque_ref, r.motor_velocity, motor_position=r.motor_position)
+
+
+def pct(a: float, b: float) -> float:
+    return 100.0 * (a / b - 1.0) if b != 0 else math.nan
+
+
+def run(case: Case, method: Method, compare: bool) -> dict:
+    rec = record(case)
+    # the default limit (5 % unexplained torque) would refuse the plants with unmodelled
+    # friction / lag; here every estimate is shown, with its residual ratio
+    opts = IdentificationOptions(method=method, compare_searches=compare and method is Method.HYBRID,
+                                 max_residual_ratio=1.0)
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        res = identify(rec, opts)
+    except IdentificationError as err:
+        return {"case": case.name, "method": method.value, "error": str(err),
+                "wall": time.perf_counter() - t0}
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    true = case.params()
+    mt, mi = modes(true), res.modes
+    row = {"case": case.name, "method": method.value, "eps_true": case.eps_deg, "eps": res.epsilon_deg,
+           "d_eps": res.epsilon_deg - case.eps_deg,
+           "ival": tuple(math.degrees(x) for x in res.epsilon_interval_rad),
+           "det": res.backlash_detected,
+           "fr": pct(mi.f_resonance_hz, mt.f_resonance_hz), "fa": pct(mi.f_antiresonance_hz, mt.f_antiresonance_hz),
+           "wall": wall, "cpu": cpu, "evals": res.evaluations,
+           "stages": {s.name: s.seconds for s in res.stages},
+           "frd_err": [it["frd_error"] for it in res.iterations]}
+    for k in ("J_m", "J_l", "B_m", "B_l", "K", "D"):
+        row[k] = pct(getattr(res.parameters, k), getattr(true, k))
+    if method is Method.HYBRID:
+        row["evals_joint"] = res.evaluations_joint
+        j = res.stage("joint").detail
+        row["dropped"] = j.get("dropped_fraction", 0.0)
+        row["ratio"] = j.get("residual_ratio", math.nan)
+        if compare:
+            c = res.stage("search_compare").detail
+            row["cmp"] = (c["grid_evaluations"], c["bayes_evaluations"],
+                          c["grid_best"]["epsilon_deg"], c["bayes_best"]["epsilon_deg"],
+                          c["grid_seconds"], c["bayes_seconds"])
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="a subset of the plants")
+    ap.add_argument("--no-paper", action="store_true", help="hybrid method only")
+    ap.add_argument("--paper-quick", action="store_true", help="paper method on the reference plant only")
+    ap.add_argument("--no-compare", action="store_true", help="skip the grid/Bayes search comparison")
+    args = ap.parse_args(argv)
+    cases = [c for c in FULL if not args.quick or c.name in QUICK_NAMES]
+    methods = [Method.HYBRID] + ([] if args.no_paper else [Method.PAPER])
+    # warm up the compiled kernels (first compile is not part of the figures)
+    identify(record(FULL[0]), IdentificationOptions())
+    print(f"# {len(cases)} plants, methods {[m.value for m in methods]}; load average "
+          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (wall times inflate with load)")
+    rows = []
+    for case in cases:
+        for m in methods:
+            if m is Method.PAPER and args.paper_quick and case.name != "reference":
+                continue
+            row = run(case, m, not args.no_compare)
+            rows.append(row)
+            _print_row(row)
+            sys.stdout.flush()
+    print()
+    print("stage times [s] (hybrid): frd / tffit / start / search / joint / check; total wall, cpu")
+    for r in rows:
+        if r["method"] == "hybrid" and "stages" in r:
+            s = r["stages"]
+            print(f"  {r['case']:<20} " + " / ".join(f"{s.get(k, 0):.2f}" for k in
+                  ("frd", "tffit", "start", "search", "joint", "check"))
+                  + f";  {r['wall']:.2f}, {r['cpu']:.2f}  (joint evals {r.get('evals_joint')}, "
+                  f"dropped {100 * r.get('dropped', 0):.1f} %, residual {100 * r.get('ratio', math.nan):.3f} % "
+                  "of τ_ref)")
+    cmp_rows = [r for r in rows if "cmp" in r]
+    if cmp_rows:
+        print()
+        print("search evaluations: coarse grid (default) | full grid | Bayes  — best ε [deg] grid / Bayes, seconds grid / Bayes")
+        for r in cmp_rows:
+            g, b, ge, be, gs, bs = r["cmp"]
+            print(f"  {r['case']:<20} {r['evals']:>4} | {g:>4} | {b:>4}   {ge:.2f} / {be:.2f}   {gs:.2f} / {bs:.2f}")
+    return 0
+
+
+HEADER = (f"{'plant':<20} {'method':<6} {'ε true':>6} {'ε':>8} {'Δε°':>8} {'J_m%':>7} {'J_l%':>7} "
+          f"{'B_m%':>7} {'B_l%':>7} {'K%':>7} {'D%':>7} {'f_r%':>7} {'f_a%':>7} {'evals':>5} {'wall s':>6} "
+          f"frd_error per iteration")
+_printed_header = False
+
+
+def _print_row(r: dict) -> None:
+    global _printed_header
+    if not _printed_header:
+        print(HEADER)
+        _printed_header = True
+    if "error" in r:
+        print(f"{r['case']:<20} {r['method']:<6} FAILED: {r['error']}  ({r['wall']:.1f} s)")
+        return
+    f = lambda x: f"{x:7.3f}" if abs(x) < 100 else f"{x:7.0f}"  # noqa: E731
+    print(f"{r['case']:<20} {r['method']:<6} {r['eps_true']:6.2f} {r['eps']:8.4f} {r['d_eps']:8.4f} "
+          + " ".join(f(r[k]) for k in ("J_m", "J_l", "B_m", "B_l", "K", "D", "fr", "fa"))
+          + f" {r['evals']:5d} {r['wall']:6.1f} " + ",".join(f"{e:.4f}" for e in r["frd_err"]))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,524 @@
+"""The identification pipelines: ``hybrid`` (default, accurate) and ``paper`` (faithful).
+
+``hybrid`` (METHOD.md, "What works"), stage by stage:
+
+1. ``frd``     — FRD of τ_ref → v_m (:func:`commission.ident.frd.estimate_frd`).
+2. ``tffit``   — 2/3 rational fit with transient term and one-sample delay
+   (:func:`commission.ident.tffit.fit_transfer_function`); mapped to a physical start
+   (:func:`commission.ident.jointfit.linear_start`, robust to an unphysical damping split).
+3. ``search``  — (ε, φ = B_l/(B_m+B_l), ω_a scale) cells on the drift-free torque residual
+   (:mod:`commission.ident.residual`), J_m, B_m, J_l projected out in every evaluation.
+4. ``joint``   — least squares of all seven parameters from the best cells
+   (:func:`commission.ident.jointfit.joint_fit`), chaotic bursts dropped, ε ≥ 0.
+5. ``check``   — the paper's step 5 for the result: simulate the dead-zone model open loop
+   (:func:`commission.ident.backlash.simulate_deadzone`), FRD of the simulation vs the
+   measured FRD (:func:`commission.ident.paper.frd_error`); then the paper's step 6 once
+   (backlash effect removed from v_m with the result, FRD refitted, step 5 again). Reported
+   as iterations: the frequency-domain start (with the search's best ε), the joint-fit
+   result, and its step-6 refit.
+
+No backlash: ε is fitted on [0, 2·upper bound]; ``backlash_detected`` is
+ε̂ > ``no_backlash_threshold_deg`` and ``epsilon_deg`` is the estimate either way.
+
+Load encoder (``use_load_encoder`` and the recording has ``load_position``): the
+initial twist comes from the encoders instead of "centred, at rest", and the joint
+fit gets a second residual block K̂·(x_l,sim − x_l,meas) [N·m], which ties the
+simulated load to the measured one (the gap shows directly in the twist).
+
+``paper`` wraps :func:`commission.ident.paper.paper_identify` (Bayesian search of ε on
+max|v_m − v̂_m|, steps 5–6 iterated) into the same :class:`Identification`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from ..exceptions import IdentificationError
+from ..recording import Recording
+from .twomass import Modes, TwoMassParameters, modes
+
+__all__ = [
+    "Method",
+    "SearchMethod",
+    "IdentificationOptions",
+    "StageResult",
+    "Identification",
+    "identify",
+]
+
+
+class Method(str, Enum):
+    """Identification pipeline."""
+
+    HYBRID = "hybrid"
+    PAPER = "paper"
+
+
+class SearchMethod(str, Enum):
+    """How the hybrid pipeline searches its (ε, φ, ω_a-scale) starts."""
+
+    COARSE = "coarse"
+    """Exhaustive on a grid 5× coarser in ε than the resolution (the joint fit refines ε)."""
+    GRID = "grid"
+    """Exhaustive at the full ε resolution."""
+    BAYES = "bayes"
+    """Gaussian-process Bayesian optimisation over ε per (φ, scale) pair, full resolution."""
+
+
+class IdentificationOptions(BaseModel):
+    """Options of :func:`identify` (validated; units in the names and descriptions)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    method: Method = Field(Method.HYBRID, description="Pipeline: 'hybrid' (default) or 'paper'.")
+    band_hz: tuple[float, float] = Field(
+        (0.1, 400.0), description="Frequency band of the FRD and its fit [Hz], (low, high).")
+    resolution_hz: float = Field(
+        0.1, gt=0, description="FRD resolution [Hz]; the record must last ≥ 1/resolution_hz s.")
+    epsilon_bounds_deg: tuple[float, float] = Field(
+        (0.01, 1.0), description="Search range of the backlash half-width ε [deg] (paper Table 2). "
+        "The hybrid joint fit may go down to 0 and up to twice the upper bound.")
+    epsilon_resolution_deg: float = Field(
+        0.01, gt=0, description="Resolution of the ε search grid [deg].")
+    max_iterations: int = Field(
+        5, ge=1, le=50, description="Paper method: passes of steps 4–6 at most. "
+        "Hybrid: not used (its joint fit stops on convergence, see max_fit_evaluations).")
+    max_fit_evaluations: int = Field(
+        40, ge=5, le=500, description="Hybrid: least-squares function evaluations per start.")
+    seed: int = Field(0, ge=0, description="Seed of the Bayesian optimiser.")
+    residual_cutoff_hz: float = Field(
+        400.0, gt=0, description="Zero-phase low-pass of the torque residual [Hz].")
+    use_load_encoder: bool = Field(
+        True, description="Use the load-side encoder when the recording has one.")
+    no_backlash_threshold_deg: float = Field(
+        0.01, ge=0, description="ε̂ at or below this [deg] is reported as 'no backlash detected'.")
+    search: SearchMethod = Field(
+        SearchMethod.COARSE, description="Hybrid: search of the joint fit's starts.")
+    compare_searches: bool = Field(
+        False, description="Hybrid: also run the full-resolution grid and the Bayesian search and "
+        "report their evaluation counts and best cells (slower; for benchmarks).")
+    damping_splits: tuple[float, ...] = Field(
+        (0.2, 0.5, 0.8), description="Hybrid: candidates of φ = B_l/(B_m + B_l) [-] in the search.")
+    omega_scales: tuple[float, ...] = Field(
+        (1.0,), description="Hybrid: factors on the fitted anti-resonance frequency in the "
+        "search, e.g. (1.0, 1.15) when backlash biases the FRD's modes low [-]. One factor "
+        "sufficed on every plant of bench/bench_identify.py the model describes (and halves "
+        "the search time).")
+    starts: int = Field(3, ge=1, le=10, description="Hybrid: joint-fit starts from the best cells.")
+    good_fit_ratio: float = Field(
+        1e-3, ge=0, description="Hybrid: a joint-fit start whose RMS residual is below this "
+        "fraction of RMS(low-passed τ_ref) ends the multi-start (measured noise floor with 24-bit "
+        "encoders and 1e-4 N·m torque noise: 3e-4) [-].")
+    max_residual_ratio: float = Field(
+        0.05, gt=0, description="Hybrid: fail when RMS(residual)/RMS(low-passed τ_ref) exceeds this [-].")
+    threads: int = Field(2, ge=1, le=64, description="Threads for residual evaluations.")
+    step6_check: bool = Field(
+        True, description="Hybrid: also run the paper's step 6 (backlash effect removed from v_m, "
+        "FRD refitted, step 5 again) on the result and report it as the last iteration.")
+
+    @model_validator(mode="after")
+    def _check(self) -> IdentificationOptions:
+        lo, hi = self.band_hz
+        if not (0 <= lo < hi):
+            raise ValueError(f"band_hz must satisfy 0 ≤ low < high, got {self.band_hz}")
+        elo, ehi = self.epsilon_bounds_deg
+        if not (0 <= elo < ehi < 90):
+            raise ValueError(f"epsilon_bounds_deg must satisfy 0 ≤ low < high < 90, got {self.epsilon_bounds_deg}")
+        if self.epsilon_resolution_deg > ehi - elo:
+            raise ValueError("epsilon_resolution_deg is larger than the search range")
+        if not all(0 < p < 1 for p in self.damping_splits) or not self.damping_splits:
+            raise ValueError("damping_splits must be in (0, 1)")
+        if not all(s > 0 for s in self.omega_scales) or not self.omega_scales:
+            raise ValueError("omega_scales must be positive")
+        return self
+
+
+@dataclass(frozen=True)
+class StageResult:
+    """One stage of a pipeline: its name, wall time and what it found."""
+
+    name: str
+    seconds: float
+    """Wall time [s]."""
+    detail: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Identification:
+    """Result of :func:`identify` (SI units unless the name says otherwise)."""
+
+    method: Method
+    parameters: TwoMassParameters
+    epsilon_rad: float
+    """Backlash half-width ε [rad] (the estimate, also when no backlash is detected)."""
+    epsilon_interval_rad: tuple[float, float]
+    """Interval of ε [rad]: hybrid, ε̂ ± 1.96σ from the Jacobian; paper, the search's interval."""
+    evaluations: int
+    """Loss/residual evaluations of the ε search (hybrid: the search stage)."""
+    modes: Modes
+    num: NDArray[np.float64]
+    """V_m/T_ref numerator, descending powers of s (from ``parameters``)."""
+    den: NDArray[np.float64]
+    """V_m/T_ref denominator, descending powers of s, den[0] = 1."""
+    delay_s: float
+    """Pure delay of the data [s] (one sample: the drive convention)."""
+    iterations: list[dict[str, float]]
+    """Step-5 checks: {"frd_error", "epsilon_deg"} per iteration."""
+    stages: list[StageResult]
+    source_samples: int
+    sample_rate_hz: float
+    backlash_detected: bool
+    notes: list[str] = field(default_factory=list)
+    evaluations_grid: int | None = None
+    """Evaluations the full-resolution grid search took (when computed)."""
+    evaluations_joint: int | None = None
+    """Residual evaluations of the joint least-squares fit (hybrid)."""
+    parameter_stderr: dict[str, float] | None = None
+    """Relative standard errors of J_m … D (hybrid, from the Jacobian) [-]."""
+
+    @property
+    def epsilon_deg(self) -> float:
+        return math.degrees(self.epsilon_rad)
+
+    def stage(self, name: str) -> StageResult:
+        """The stage called ``name``."""
+        for s in self.stages:
+            if s.name == name:
+                return s
+        raise KeyError(name)
+
+    def to_dict(self, source_file: str | None = None) -> dict[str, Any]:
+        """The result.json document."""
+        lo, hi = self.epsilon_interval_rad
+        m = self.modes
+        out: dict[str, Any] = {
+            "backlash": {
+                "epsilon_deg": math.degrees(self.epsilon_rad),
+                "epsilon_interval_deg": [math.degrees(lo), math.degrees(hi)],
+                "evaluations": int(self.evaluations),
+                "method": self.method.value,
+                "detected": bool(self.backlash_detected),
+            },
+            "two_mass": self.parameters.as_dict(),
+            "modes": {
+                "f_resonance_hz": float(m.f_resonance_hz),
+                "zeta_resonance": float(m.zeta_resonance),
+                "f_antiresonance_hz": float(m.f_antiresonance_hz),
+                "zeta_antiresonance": float(m.zeta_antiresonance),
+            },
+            "transfer_function": {"num": [float(v) for v in self.num],
+                                  "den": [float(v) for v in self.den],
+                                  "delay_s": float(self.delay_s)},
+            "iterations": [{"frd_error": float(it["frd_error"]), "epsilon_deg": float(it["epsilon_deg"])}
+                           for it in self.iterations],
+            "source": {"file": source_file, "sample_rate_hz": float(self.sample_rate_hz),
+                       "samples": int(self.source_samples)},
+            "stages": [{"name": s.name, "seconds": float(s.seconds)} for s in self.stages],
+            "notes": list(self.notes),
+        }
+        if self.evaluations_grid is not None:
+            out["backlash"]["evaluations_grid"] = int(self.evaluations_grid)
+        if self.parameter_stderr is not None:
+            out["two_mass_relative_stderr"] = {k: float(v) for k, v in self.parameter_stderr.items()}
+        return out
+
+
+# ----------------------------------------------------------------------------
+# input checks
+# ----------------------------------------------------------------------------
+def _check_recording(rec: Recording, opt: IdentificationOptions) -> None:
+    fs = rec.sample_rate_hz
+    need = int(round(fs / opt.resolution_hz))
+    if len(rec) < need:
+        raise IdentificationError(
+            f"recording of {len(rec) / fs:.3f} s is too short for a {opt.resolution_hz:g} Hz "
+            f"resolution (needs {need / fs:.3f} s)")
+    if opt.band_hz[1] > fs / 2:
+        raise IdentificationError(
+            f"band upper edge {opt.band_hz[1]:g} Hz is above Nyquist ({fs / 2:g} Hz)")
+    if opt.residual_cutoff_hz >= fs / 2:
+        raise IdentificationError(
+            f"residual cut-off {opt.residual_cutoff_hz:g} Hz is above Nyquist ({fs / 2:g} Hz)")
+    if not rec.is_uniform:
+        raise IdentificationError("the recording is not uniformly sampled")
+    tau = rec.torque_ref
+    if np.ptp(tau) == 0.0:
+        raise IdentificationError("torque_ref is constant: the axis was not excited")
+    v = rec.motor_velocity
+    if np.ptp(v) == 0.0:
+        raise IdentificationError("motor_velocity is constant: the motor did not move")
+    n = len(rec)
+    for name, x in (("torque_ref", tau), ("motor_velocity", v)):
+        top = np.flatnonzero(x == x.max())
+        if top.size >= max(10, n // 100):
+            runs = np.diff(top)
+            if np.sum(runs == 1) >= max(10, n // 100) - 1:
+                raise IdentificationError(f"{name} sits at its extreme value for many consecutive "
+                                          "samples: saturated or clipped")
+
+
+# ----------------------------------------------------------------------------
+# pipelines
+# ----------------------------------------------------------------------------
+Progress = Callable[[str, float], None]
+
+
+class _Stages:
+    def __init__(self, progress: Progress | None) -> None:
+        self.items: list[StageResult] = []
+        self.progress = progress
+        self._t = 0.0
+
+    def start(self, name: str, fraction: float) -> None:
+        if self.progress is not None:
+            self.progress(name, fraction)
+        self._t = time.perf_counter()
+
+    def done(self, name: str, **detail: Any) -> None:
+        self.items.append(StageResult(name, time.perf_counter() - self._t, detail))
+
+
+def identify(recording: Recording, options: IdentificationOptions | None = None,
+             progress: Progress | None = None) -> Identification:
+    """Identify the two-mass model and the backlash from one chirp experiment.
+
+    :param recording: torque_ref, motor_velocity (and motor_position, optional load encoder).
+    :param options: see :class:`IdentificationOptions` (default: hybrid).
+    :param progress: called as progress(stage, fraction ∈ [0, 1]) when a stage starts.
+    :raises IdentificationError: the data cannot give a trustworthy model (one-line reason).
+    """
+    opt = options if options is not None else IdentificationOptions()
+    _check_recording(recording, opt)
+    if opt.method is Method.PAPER:
+        result = _identify_paper(recording, opt, _Stages(progress))
+    else:
+        result = _identify_hybrid(recording, opt, _Stages(progress))
+    if progress is not None:
+        progress("done", 1.0)
+    return result
+
+
+def _frd_and_fit(rec: Recording, opt: IdentificationOptions, st: _Stages) -> tuple[Any, Any]:
+    from .frd import estimate_frd
+    from .tffit import fit_transfer_function
+
+    st.start("frd", 0.0)
+    frd = estimate_frd(rec.torque_ref, rec.motor_velocity, rec.sample_rate_hz,
+                       band_hz=opt.band_hz, resolution_hz=opt.resolution_hz)
+    st.done("frd", bins=int(frd.frequency_hz.size), resolution_hz=float(frd.resolution_hz))
+    st.start("tffit", 0.1)
+    fit = fit_transfer_function(frd)
+    st.done("tffit", num=[float(v) for v in fit.num], den=[float(v) for v in fit.den],
+            delay_s=float(fit.delay_s), fit_error=float(fit.fit_error),
+            sk_iterations=int(fit.iterations), converged=bool(fit.converged))
+    return frd, fit
+
+
+def _step5(rec: Recording, frd: Any, params: TwoMassParameters, eps: float, delay_s: float,
+           opt: IdentificationOptions) -> float:
+    """Paper step 5: FRD of the open-loop dead-zone simulation vs the measured FRD."""
+    from .backlash import simulate_deadzone
+    from .frd import estimate_frd
+    from .paper import frd_error
+
+    d = max(0, int(round(delay_s * rec.sample_rate_hz)))
+    sim = simulate_deadzone(params, eps, rec.torque_ref, rec.sample_rate_hz, delay_samples=d)
+    g = estimate_frd(rec.torque_ref, sim.motor_velocity, rec.sample_rate_hz,
+                     band_hz=opt.band_hz, resolution_hz=opt.resolution_hz)
+    lo = max(1.0, opt.band_hz[0])
+    return frd_error(frd, g, (lo, opt.band_hz[1]))
+
+
+def _epsilon_candidates(opt: IdentificationOptions, coarse: bool) -> NDArray[np.float64]:
+    lo, hi = opt.epsilon_bounds_deg
+    step = opt.epsilon_resolution_deg * (5 if coarse else 1)
+    n = int(math.floor((hi - lo) / step + 1e-9))
+    grid = lo + step * np.arange(n + 1)
+    if grid[-1] < hi - 1e-12:
+        grid = np.append(grid, hi)
+    return np.radians(np.unique(np.concatenate(([0.0], grid))))
+
+
+def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) -> Identification:
+    from .jointfit import joint_fit, linear_start, search_starts
+    from .residual import prepare_residual
+
+    notes: list[str] = []
+    fs = rec.sample_rate_hz
+    frd, fit = _frd_and_fit(rec, opt, st)
+
+    st.start("start", 0.25)
+    start, how = linear_start(fit.num, fit.den)
+    if how != "exact":
+        notes.append("the fitted transfer function maps to no physical plant (damping split); "
+                     "the start keeps J_m, B_m + B_l and the modes and searches the split")
+    use_load = bool(opt.use_load_encoder and rec.load_position is not None)
+    problem = prepare_residual(
+        rec.torque_ref, fs, motor_position=rec.motor_position, motor_velocity=rec.motor_velocity,
+        cutoff_hz=opt.residual_cutoff_hz, load_position=rec.load_position if use_load else None)
+    if rec.motor_position is None:
+        notes.append("motor position rebuilt from the velocity (x[k] = x[k−1] + Ts·v[k])")
+    if use_load:
+        notes.append("load encoder used: initial twist from the encoders and a load-position "
+                     "residual block K̂·(x_l,sim − x_l,meas)")
+    w_load = float(start.K) if use_load else 0.0
+    st.done("start", parameters=start.as_dict(), how=how, load_encoder=use_load)
+
+    st.start("search", 0.3)
+    eps_coarse = _epsilon_candidates(opt, coarse=opt.search is SearchMethod.COARSE)
+    method = "grid" if opt.search in (SearchMethod.COARSE, SearchMethod.GRID) else "bayes"
+    eps_cands = eps_coarse if method == "grid" else _epsilon_candidates(opt, coarse=False)
+    search = search_starts(problem, start, eps_cands, opt.damping_splits, opt.omega_scales,
+                           method=method, n_best=opt.starts, seed=opt.seed, threads=opt.threads,
+                           load_weight_nm_per_rad=w_load)
+    best = search.best[0]
+    st.done("search", method=opt.search.value, evaluations=search.evaluations,
+            best=[{"epsilon_deg": math.degrees(c.epsilon_rad), "phi": c.phi,
+                   "omega_scale": c.omega_scale, "cost_nm": c.cost} for c in search.best])
+    evaluations_grid: int | None = None
+    if opt.compare_searches:
+        st.start("search_compare", 0.4)
+        full = _epsilon_candidates(opt, coarse=False)
+        g = search_starts(problem, start, full, opt.damping_splits, opt.omega_scales,
+                          method="grid", n_best=1, threads=opt.threads, load_weight_nm_per_rad=w_load)
+        b = search_starts(problem, start, full, opt.damping_splits, opt.omega_scales,
+                          method="bayes", n_best=1, seed=opt.seed, load_weight_nm_per_rad=w_load)
+        evaluations_grid = g.evaluations
+        cell = lambda c: {"epsilon_deg": math.degrees(c.epsilon_rad), "phi": c.phi,  # noqa: E731
+                          "omega_scale": c.omega_scale, "cost_nm": c.cost}
+        st.done("search_compare", grid_evaluations=g.evaluations, grid_best=cell(g.best[0]),
+                grid_seconds=g.seconds, bayes_evaluations=b.evaluations, bayes_best=cell(b.best[0]),
+                bayes_seconds=b.seconds, coarse_evaluations=search.evaluations if opt.search is SearchMethod.COARSE else None)
+
+    ref = float(np.sqrt(np.mean(problem.torque_f ** 2)))
+    if ref <= 0 or best.cost > 10 * opt.max_residual_ratio * ref:
+        raise IdentificationError(
+            f"the model cannot explain the data: even the best start leaves "
+            f"{100 * best.cost / max(ref, 1e-300):.0f} % of the torque unexplained")
+
+    st.start("joint", 0.5)
+    eps_max = math.radians(2.0 * opt.epsilon_bounds_deg[1])
+    jf = joint_fit(problem, start, search.best, epsilon_max_rad=eps_max,
+                   max_nfev=opt.max_fit_evaluations, threads=opt.threads,
+                   load_weight_nm_per_rad=w_load, stop_cost_nm=opt.good_fit_ratio * ref)
+    params = jf.parameters
+    st.done("joint", evaluations=jf.evaluations, cost_nm=jf.cost, success=jf.success,
+            message=jf.message, dropped_fraction=jf.dropped_fraction, dof=jf.dof,
+            epsilon_stderr_deg=math.degrees(jf.epsilon_stderr_rad),
+            relative_stderr=jf.relative_stderr,
+            starts=[{"epsilon_start_deg": math.degrees(a), "phi_start": b, "cost_nm": c,
+                     "epsilon_deg": math.degrees(e)} for a, b, c, e in jf.starts])
+    if jf.dropped_fraction > 0:
+        notes.append(f"{100 * jf.dropped_fraction:.1f} % of the residual dropped as chaotic "
+                     "impact bursts (load floating in the gap)")
+    ratio = jf.cost / ref
+    st.items[-1].detail["residual_ratio"] = ratio
+    if not math.isfinite(ratio):
+        raise IdentificationError("the joint fit did not converge to finite parameters")
+    if ratio > opt.max_residual_ratio:
+        raise IdentificationError(
+            f"the model cannot explain the data: residual is {100 * ratio:.1f} % of the torque "
+            f"(limit {100 * opt.max_residual_ratio:.1f} %)")
+    if min(params.J_m, params.J_l, params.K) <= 0 or min(params.B_m, params.B_l, params.D) < 0:
+        raise IdentificationError(f"the joint fit found no physical plant: {params}")
+
+    st.start("check", 0.9)
+    iterations: list[dict[str, float]] = []
+    try:
+        e0 = _step5(rec, frd, start, best.epsilon_rad, fit.delay_s, opt)
+        iterations.append({"frd_error": e0, "epsilon_deg": math.degrees(best.epsilon_rad)})
+    except IdentificationError as err:  # the start may be unphysical; not fatal
+        notes.append(f"step 5 on the frequency-domain start failed: {err}")
+    e1 = _step5(rec, frd, params, jf.epsilon_rad, 1.0 / fs, opt)
+    iterations.append({"frd_error": e1, "epsilon_deg": math.degrees(jf.epsilon_rad)})
+    step6: dict[str, Any] = {}
+    if opt.step6_check and jf.epsilon_rad > 0:
+        # the paper's step 6 applied to the hybrid result: remove the backlash's effect from
+        # v_m with (parameters, ε̂), refit the FRD, step 5 again — shows whether the
+        # frequency-domain refit would move the model (it should not when the model is right)
+        from .paper import paper_identify
+
+        try:
+            pr = paper_identify(rec.torque_ref, rec.motor_velocity, fs, params,
+                                fixed_epsilon_rad=jf.epsilon_rad, max_iterations=2, frd_tol=0.0,
+                                frd_band_hz=(max(1.0, opt.band_hz[0]), opt.band_hz[1]))
+            if len(pr.iterations) > 1:
+                it = pr.iterations[1]
+                iterations.append({"frd_error": float(it.frd_error), "epsilon_deg": math.degrees(it.epsilon_rad)})
+                step6 = {"refit_parameters": it.params.as_dict(), "stop_reason": pr.stop_reason}
+        except IdentificationError as err:
+            notes.append(f"step 6 check on the hybrid result failed: {err}")
+    st.done("check", frd_error=e1, **step6)
+
+    eps = jf.epsilon_rad
+    detected = math.degrees(eps) > opt.no_backlash_threshold_deg
+    if not detected:
+        notes.append(f"no backlash detected: ε̂ = {math.degrees(eps):.4f}° ≤ "
+                     f"{opt.no_backlash_threshold_deg}°")
+    num, den = params.velocity_tf()
+    return Identification(
+        method=Method.HYBRID, parameters=params, epsilon_rad=eps,
+        epsilon_interval_rad=jf.epsilon_interval_rad, evaluations=search.evaluations,
+        modes=modes(params), num=num, den=den, delay_s=1.0 / fs, iterations=iterations,
+        stages=st.items, source_samples=len(rec), sample_rate_hz=fs, backlash_detected=detected,
+        notes=notes, evaluations_grid=evaluations_grid, evaluations_joint=jf.evaluations,
+        parameter_stderr=jf.relative_stderr,
+    )
+
+
+def _identify_paper(rec: Recording, opt: IdentificationOptions, st: _Stages) -> Identification:
+    from .jointfit import linear_start
+    from .paper import paper_identify
+
+    notes: list[str] = []
+    fs = rec.sample_rate_hz
+    frd, fit = _frd_and_fit(rec, opt, st)
+    st.start("paper", 0.3)
+    bounds = (math.radians(opt.epsilon_bounds_deg[0]), math.radians(opt.epsilon_bounds_deg[1]))
+    kw = dict(search="bayes", bounds_rad=bounds, resolution_rad=math.radians(opt.epsilon_resolution_deg),
+              max_iterations=opt.max_iterations, seed=opt.seed)
+    try:
+        res = paper_identify(rec.torque_ref, rec.motor_velocity, fs, fit, **kw)
+    except IdentificationError as err:
+        start, _ = linear_start(fit.num, fit.den)
+        notes.append(f"paper: the fit maps to no physical plant ({err}); started from the "
+                     "modes with an even damping split instead")
+        res = paper_identify(rec.torque_ref, rec.motor_velocity, fs, start, **kw)
+    st.done("paper", stop_reason=res.stop_reason, timings_s=dict(res.timings_s),
+            passes=len(res.iterations))
+    chosen = min(res.iterations, key=lambda r: r.frd_error)
+    params = res.params
+    num, den = params.velocity_tf()
+    if not res.backlash_detected:
+        notes.append("paper: L(0) is as good as the best ε of the grid: no backlash detected")
+    notes.append(f"paper: stopped by '{res.stop_reason}'")
+    iterations = [{"frd_error": float(it.frd_error), "epsilon_deg": math.degrees(it.epsilon_rad)}
+                  for it in res.iterations]
+    interval = tuple(chosen.search.interval_rad) if res.backlash_detected else (0.0, bounds[0])
+    return Identification(
+        method=Method.PAPER, parameters=params, epsilon_rad=res.epsilon_rad,
+        epsilon_interval_rad=(float(interval[0]), float(interval[1])),
+        evaluations=int(sum(it.search.evaluations for it in res.iterations)),
+        modes=modes(params), num=num, den=den, delay_s=float(res.delay_s), iterations=iterations,
+        stages=st.items, source_samples=len(rec), sample_rate_hz=fs,
+        backlash_detected=bool(res.backlash_detected), notes=notes,
+    )
+
+
+def options_from_mapping(data: dict[str, Any]) -> IdentificationOptions:
+    """Validated options from a plain mapping (config files); errors as IdentificationError."""
+    try:
+        return IdentificationOptions.model_validate(data)
+    except ValidationError as err:
+        first = err.errors()[0]
+        loc = ".".join(str(p) for p in first.get("loc", ()))
+        raise IdentificationError(f"invalid identification option {loc}: {first.get('msg')}") from err

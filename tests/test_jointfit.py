@@ -1,0 +1,94 @@
+"""Search of the starts and the joint least-squares fit on the torque residual."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from commission.config import ExcitationConfig
+from commission.excitation import chirp
+from commission.ident.jointfit import (
+    SearchCell,
+    burst_mask,
+    joint_fit,
+    linear_start,
+    search_starts,
+)
+from commission.ident.residual import prepare_residual
+from commission.ident.twomass import REFERENCE_PLANT, TwoMassParameters
+from sim_drive.plant import Plant, PlantParameters
+
+FS = 8000.0
+EPS_DEG = 0.40
+
+
+@pytest.fixture(scope="module")
+def problem():
+    tau = chirp(ExcitationConfig()).samples
+    r = Plant(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=EPS_DEG,
+                              torque_noise_nm=1e-4, seed=5), FS).run_torque(tau)
+    return prepare_residual(r.torque_ref, FS, motor_position=r.motor_position, cutoff_hz=400.0)
+
+
+def test_linear_start_is_exact_on_a_physical_fit():
+    num, den = REFERENCE_PLANT.velocity_tf()
+    p, how = linear_start(num, den)
+    assert how == "exact"
+    assert_allclose(p.as_array(), REFERENCE_PLANT.as_array(), rtol=1e-9)
+
+
+def test_linear_start_survives_an_unphysical_damping_split():
+    num, den = REFERENCE_PLANT.velocity_tf()
+    num = num.copy()
+    num[1] *= 0.2  # (D + B_l)/(J_m J_l) far too low: B_l or D comes out negative in the exact map
+    p, how = linear_start(num, den)
+    assert how == "modes"
+    assert min(p.as_array()) > 0
+    assert_allclose(p.J_m, REFERENCE_PLANT.J_m, rtol=1e-9)
+    assert_allclose(p.B_m + p.B_l, REFERENCE_PLANT.B_m + REFERENCE_PLANT.B_l, rtol=1e-9)
+
+
+def test_joint_fit_converges_from_a_start_fifteen_percent_off(problem):
+    f = np.array([1.15, 0.85, 1.3, 0.7, 0.85, 1.2])  # J_m J_l B_m B_l K D
+    start = TwoMassParameters(*(REFERENCE_PLANT.as_array() * f))
+    jf = joint_fit(problem, start, [SearchCell(math.radians(0.3), 0.5, 1.0, 0.0)])
+    assert abs(math.degrees(jf.epsilon_rad) - EPS_DEG) < 1e-3
+    assert_allclose(jf.parameters.as_array(), REFERENCE_PLANT.as_array(), rtol=2e-3)
+    lo, hi = jf.epsilon_interval_rad
+    assert lo <= jf.epsilon_rad <= hi
+    assert jf.cost < 1e-4
+    assert all(v < 0.01 for v in jf.relative_stderr.values())
+
+
+def test_joint_fit_reaches_zero_when_started_with_backlash():
+    tau = chirp(ExcitationConfig()).samples
+    r = Plant(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.0,
+                              torque_noise_nm=1e-4, seed=5), FS).run_torque(tau)
+    p = prepare_residual(r.torque_ref, FS, motor_position=r.motor_position)
+    jf = joint_fit(p, REFERENCE_PLANT, [SearchCell(math.radians(0.05), 0.4, 1.0, 0.0)])
+    assert math.degrees(jf.epsilon_rad) < 0.002
+
+
+def test_bayes_finds_the_grid_cell_with_fewer_evaluations(problem):
+    start = TwoMassParameters(*(REFERENCE_PLANT.as_array() * np.array([1.0, 1.03, 1.2, 0.7, 1.01, 1.07])))
+    eps = np.radians(np.round(np.arange(0.01, 1.00001, 0.01), 4))
+    g = search_starts(problem, start, eps, (0.2, 0.5, 0.8), method="grid", n_best=1)
+    b = search_starts(problem, start, eps, (0.2, 0.5, 0.8), method="bayes", n_best=1)
+    assert g.evaluations == 300
+    assert b.evaluations < g.evaluations / 3
+    assert abs(b.best[0].epsilon_rad - g.best[0].epsilon_rad) <= math.radians(0.02)
+    assert b.best[0].cost <= 1.05 * g.best[0].cost
+
+
+def test_burst_mask_keeps_gaussian_noise_and_drops_bursts():
+    rng = np.random.default_rng(1)
+    r = rng.standard_normal(10_000)
+    assert burst_mask(r, 800.0).all()
+    r[5000:5010] += 100.0
+    keep = burst_mask(r, 800.0, guard_s=0.01)
+    assert not keep[5000:5010].any()
+    assert not keep[4992] and not keep[5017]
+    assert keep.mean() > 0.99
