@@ -24,19 +24,43 @@ def test_sim_run_writes_the_log(sim_run):
     assert len(rec) == 80_000 and rec.metadata["status"] == "complete"
 
 
-def test_replay_json(sim_run, tmp_path, capsys):
+RESULT_KEYS = {
+    "backlash": {"epsilon_deg", "epsilon_interval_deg", "evaluations", "method"},
+    "two_mass": {"J_m", "J_l", "B_m", "B_l", "K", "D"},
+    "modes": {"f_resonance_hz", "zeta_resonance", "f_antiresonance_hz", "zeta_antiresonance"},
+    "transfer_function": {"num", "den"},
+    "source": {"file", "sample_rate_hz", "samples"},
+}
+
+
+def test_sim_run_writes_result_json_with_the_documented_keys(sim_run):
+    doc = json.loads((sim_run / "result.json").read_text())
+    for section, keys in RESULT_KEYS.items():
+        assert keys <= set(doc[section]), section
+    assert isinstance(doc["iterations"], list) and {"frd_error", "epsilon_deg"} <= set(doc["iterations"][0])
+    assert len(doc["transfer_function"]["num"]) == 3 and len(doc["transfer_function"]["den"]) == 4
+    assert doc["backlash"]["method"] == "hybrid"
+    assert doc["source"] == {"file": str(sim_run / "run.mcap"), "sample_rate_hz": 8000.0, "samples": 80000}
+    assert abs(doc["backlash"]["epsilon_deg"] - 0.40) < 0.01  # the default plant's backlash
+
+
+def test_replay_gives_the_live_result(sim_run, tmp_path, capsys):
     capsys.readouterr()
     assert main(["--replay", str(sim_run / "run.mcap"), "--out", str(tmp_path), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["recording"]["samples"] == 80_000
     assert doc["recording"]["signals"][:3] == ["torque_ref", "motor_position", "motor_velocity"]
+    live = json.loads((sim_run / "result.json").read_text())
+    replay = json.loads((tmp_path / "result.json").read_text())
+    for section in ("backlash", "two_mass", "modes", "transfer_function", "iterations"):
+        assert replay[section] == live[section], section
 
 
 def test_replay_csv(sim_run, tmp_path, capsys):
     rec = read_recording(sim_run / "run.mcap")
     write_csv(tmp_path / "axis.csv", rec.head(8000))
     capsys.readouterr()
-    assert main(["--replay", str(tmp_path / "axis.csv"), "--out", str(tmp_path / "o"), "--json"]) == 0
+    assert main(["--replay", str(tmp_path / "axis.csv"), "--out", str(tmp_path / "o"), "--json", "--no-identify"]) == 0
     assert json.loads(capsys.readouterr().out)["recording"]["samples"] == 8000
 
 
@@ -45,7 +69,7 @@ def test_truncated_log_is_replayed_with_a_warning(sim_run, tmp_path, capsys):
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) // 2])
     capsys.readouterr()
-    assert main(["--replay", str(cut), "--out", str(tmp_path / "o"), "--json"]) == 0
+    assert main(["--replay", str(cut), "--out", str(tmp_path / "o"), "--json", "--no-identify"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert 20_000 < doc["recording"]["samples"] < 60_000
     assert doc["warnings"]

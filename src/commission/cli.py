@@ -19,17 +19,19 @@ from typing import Any
 import numpy as np
 
 from .config import Config, load_config
-from .exceptions import Aborted, CommissionError, LogFormatError
+from .exceptions import Aborted, CommissionError, LogFormatError, OutputError
 from .recording import Recording
 
 EPILOG = """\
 modes:
   commission --sim                       full experiment on the built-in simulated drive
   commission --port can0                 CANopen drive on SocketCAN can0 (CiA 402)
+  commission --sim --sim-link canopen    the simulated drive as a CANopen node on a virtual bus
   commission --replay run.mcap --out D   identify again from a log (.mcap or .csv)
 
 outputs (in --out DIR, default ./commissioning/<date-time>/):
   run.mcap       every sample sent and measured, the config and the drive's identity
+  result.json    the identified two-mass model, its modes and the backlash (SI units)
   backlash-check.mcap   the velocity-reversal experiment (with --measure-backlash)
 
 exit codes: 0 ok, 1 other error, 2 config, 3 input file, 4 drive, 5 safety limit, 6 identification,
@@ -62,10 +64,30 @@ def build_parser() -> argparse.ArgumentParser:
     link.add_argument("--bitrate", metavar="BIT/S", type=int, help="CAN bit rate (default: the adapter's)")
     link.add_argument("--node-id", metavar="ID", type=int, help="CANopen node id of the drive")
     link.add_argument("--protocol", choices=["canopen", "modbus"], help="protocol on the port (default: canopen for CAN)")
-    link.add_argument("--drive", metavar="NAME", help="drive description under drivers/ (e.g. yaskawa-sigma7)")
+    link.add_argument("--drive", metavar="NAME", help="drive description under drivers/ (sim, generic-cia402, yaskawa-sigma7; default generic-cia402)")
+    link.add_argument(
+        "--excitation", choices=["trace", "streamed"],
+        help="CANopen: waveform played and traced by the drive (primary), or host-streamed cyclic torque "
+        "over SYNC+PDO (fallback); default: what the drive description supports",
+    )
+    link.add_argument(
+        "--allow-narrow-band", action="store_true",
+        help="CANopen streamed: run even if the bus budget's usable band is below the configured f_end_hz",
+    )
     run = p.add_argument_group("run")
     run.add_argument("--config", metavar="FILE", type=Path, help="commissioning recipe (YAML); default: the paper's experiment (configs/default.yaml)")
     run.add_argument("--out", metavar="DIR", type=Path, help="output folder (default: ./commissioning/<date-time>/)")
+    run.add_argument(
+        "--method", choices=["hybrid", "paper"],
+        help="identification method: 'hybrid' (default; accurate) or 'paper' (the published procedure, "
+        "to reproduce it); overrides identification.method of the config",
+    )
+    run.add_argument(
+        "--sim-link", choices=["direct", "canopen"], default="direct",
+        help="with --sim: drive the simulated drive directly (default), or as a CANopen node on an "
+        "in-process python-can virtual bus (the whole CANopen path, every frame on the bus)",
+    )
+    run.add_argument("--no-identify", action="store_true", help="stop after the log (no result.json)")
     run.add_argument("--seed", type=int, help="seed of the simulated plant's noise (overrides sim.seed)")
     run.add_argument(
         "--measure-backlash", action="store_true",
@@ -161,10 +183,33 @@ class _Terminal:
         self.console.print(table)
 
 
+def _identifier(config: Config, args: argparse.Namespace, term: _Terminal) -> Any:
+    """The identification seam: a callable Recording -> Identification, or None (--no-identify)."""
+    if args.no_identify:
+        return None
+    from .ident.hybrid import identify
+
+    options = config.identification
+    if args.method is not None:
+        options = options.model_copy(update={"method": args.method})
+
+    def run(recording: Recording) -> Any:
+        def progress(stage: str, fraction: float) -> None:
+            term.progress("identify", int(round(1000 * fraction)), 1000)
+
+        try:
+            return identify(recording, options, progress=progress)
+        finally:
+            term.close()
+
+    return run
+
+
 def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     config: Config = load_config(args.config)
     out_dir = args.out or _default_out_dir()
     result: dict[str, Any] = {"out_dir": str(out_dir), "files": []}
+    identify = _identifier(config, args, term)
 
     if args.replay is not None:
         with warnings.catch_warnings(record=True) as caught:
@@ -175,7 +220,16 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
             result.setdefault("warnings", []).append(str(w.message))
         result["source"] = str(args.replay)
         result["recording"] = _recording_summary(recording)
-        out_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise OutputError(f"cannot create output folder {out_dir}: {err.strerror or err}") from err
+        if identify is not None:
+            from .sequencer import write_result
+
+            identification = identify(recording)
+            result["identification"] = identification.to_dict(str(args.replay))
+            result["files"].append(str(write_result(out_dir, identification, str(args.replay))))
         term.summary(f"replay of {args.replay}", _rows(result))
         return result
 
@@ -185,14 +239,22 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     sim_plant = dict(config.sim)
     if args.seed is not None:
         sim_plant["seed"] = args.seed
+    link_options = {k: v for k, v in (("bitrate", args.bitrate), ("node_id", args.node_id), ("drive", args.drive))
+                    if v is not None}
+    over_can = (args.sim and args.sim_link == "canopen") or (
+        args.port is not None and args.protocol != "modbus" and not args.port.startswith("/dev/")
+    )
+    if over_can:
+        link_options.update(band_hz=config.excitation.f_end_hz, allow_narrow_band=args.allow_narrow_band)
+        if args.excitation:
+            link_options["excitation"] = args.excitation
     drive = open_drive(
         sim=args.sim, port=args.port, interface=args.interface, protocol=args.protocol,
-        sim_plant=sim_plant if args.sim else None,
-        **{k: v for k, v in (("bitrate", args.bitrate), ("node_id", args.node_id), ("drive", args.drive)) if v is not None},
+        sim_plant=sim_plant if args.sim else None, sim_link=args.sim_link, **link_options,
     )
     with drive:
         term.say(f"drive: {drive.info.vendor} {drive.info.product} ({drive.info.backend})")
-        sequencer = Sequencer(config, drive, out_dir, progress=term.progress)
+        sequencer = Sequencer(config, drive, out_dir, progress=term.progress, identify=identify)
         outcome = sequencer.run()
         check = sequencer.measure_backlash() if args.measure_backlash else None
         term.close()
@@ -211,6 +273,8 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
         "predicted_peak_speed_rad_s": outcome.envelope.predicted_peak_speed_rad_s,
         "predicted_peak_travel_rad": outcome.envelope.predicted_peak_travel_rad,
     }
+    if outcome.identification is not None:
+        result["identification"] = outcome.identification.to_dict(str(outcome.log_path))
     result["files"] = [str(f) for f in outcome.files]
     if check is not None:
         result["files"].append(str(check[2]))
@@ -224,10 +288,23 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
         ("source", str(result.get("source"))),
         ("samples", f"{rec['samples']} at {rec['sample_rate_hz']:g} Hz ({rec['duration_s']:g} s)"),
         ("signals", ", ".join(rec["signals"])),
-        ("peak torque", f"{rec['peak_torque_nm']:.4g} N·m"),
-        ("peak motor speed", f"{rec['peak_motor_velocity_rad_s']:.4g} rad/s"),
+        ("peak torque / speed", f"{rec['peak_torque_nm']:.4g} N·m / {rec['peak_motor_velocity_rad_s']:.4g} rad/s"),
         ("status", rec["status"]),
     ]
+    ident = result.get("identification")
+    if ident is not None:
+        tm, md, bl = ident["two_mass"], ident["modes"], ident["backlash"]
+        lo, hi = bl["epsilon_interval_deg"]
+        detected = "" if bl.get("detected", True) else "  (no backlash detected)"
+        rows += [
+            ("method", bl["method"]),
+            ("backlash ε", f"{bl['epsilon_deg']:.4f}°  [{lo:.4f}°, {hi:.4f}°]{detected}"),
+            ("inertias", f"J_m {tm['J_m']:.4g}  J_l {tm['J_l']:.4g} kg·m²  (ratio {tm['J_l'] / tm['J_m']:.3g})"),
+            ("shaft", f"K {tm['K']:.4g} N·m/rad  D {tm['D']:.3g} N·m·s/rad"),
+            ("friction", f"B_m {tm['B_m']:.3g}  B_l {tm['B_l']:.3g} N·m·s/rad"),
+            ("resonance", f"{md['f_resonance_hz']:.2f} Hz  ζ {md['zeta_resonance']:.3f}"),
+            ("anti-resonance", f"{md['f_antiresonance_hz']:.2f} Hz  ζ {md['zeta_antiresonance']:.3f}"),
+        ]
     if "backlash_check" in result:
         bc = result["backlash_check"]
         rows.append(("backlash check (§4.2)",

@@ -25,6 +25,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .exceptions import ConfigError
+from .ident.hybrid import IdentificationOptions
 
 
 class ChirpForm(str, Enum):
@@ -104,7 +105,7 @@ class Config(_Section):
     excitation: ExcitationConfig = ExcitationConfig()
     safety: SafetyConfig = SafetyConfig()
     backlash_check: BacklashCheckConfig = BacklashCheckConfig()
-    identification: dict[str, Any] = Field(default_factory=dict, description="identifier options")
+    identification: IdentificationOptions = IdentificationOptions()
     sim: dict[str, Any] = Field(
         default_factory=dict,
         description="simulated plant parameters (sim_drive.plant.PlantParameters), used with --sim",

@@ -12,6 +12,7 @@ in the log.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +33,7 @@ Progress = Callable[[str, int, int], None]
 Identifier = Callable[[Recording], Any]
 
 LOG_NAME = "run.mcap"
+RESULT_NAME = "result.json"
 CHECK_LOG_NAME = "backlash-check.mcap"
 
 
@@ -46,6 +48,16 @@ class RunOutcome:
     envelope: EnvelopeCheck
     identification: Any | None = None
     files: list[Path] = field(default_factory=list)
+
+
+def write_result(out_dir: Path, identification: Any, source_file: str | None) -> Path:
+    """Write ``DIR/result.json`` (the identification, SI units) and return its path."""
+    path = Path(out_dir) / RESULT_NAME
+    try:
+        path.write_text(json.dumps(identification.to_dict(source_file), indent=2) + "\n", encoding="utf-8")
+    except OSError as err:
+        raise OutputError(f"cannot write {path}: {err.strerror or err}") from err
+    return path
 
 
 def _safe_stop(drive: Drive) -> str | None:
@@ -103,7 +115,10 @@ class Sequencer:
         log_path = self.out_dir / LOG_NAME
         recording = self._experiment(waveform, Mode.CYCLIC_SYNC_TORQUE, log_path)
         files = [log_path]
-        identification = self.identify(recording) if self.identify is not None else None
+        identification = None
+        if self.identify is not None:
+            identification = self.identify(recording)
+            files.append(write_result(self.out_dir, identification, str(log_path)))
         return RunOutcome(self.out_dir, log_path, recording, waveform, envelope, identification, files)
 
     def measure_backlash(self) -> tuple[Recording, ReversalCheck, Path]:
