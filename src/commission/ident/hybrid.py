@@ -248,8 +248,6 @@ def _check_recording(rec: Recording, opt: IdentificationOptions) -> None:
     if opt.residual_cutoff_hz >= fs / 2:
         raise IdentificationError(
             f"residual cut-off {opt.residual_cutoff_hz:g} Hz is above Nyquist ({fs / 2:g} Hz)")
-    if not rec.is_uniform:
-        raise IdentificationError("the recording is not uniformly sampled")
     tau = rec.torque_ref
     if np.ptp(tau) == 0.0:
         raise IdentificationError("torque_ref is constant: the axis was not excited")
@@ -297,11 +295,21 @@ def identify(recording: Recording, options: IdentificationOptions | None = None,
     :raises IdentificationError: the data cannot give a trustworthy model (one-line reason).
     """
     opt = options if options is not None else IdentificationOptions()
+    note = None
+    if not recording.is_uniform:
+        # host-streamed runs carry the real SYNC times: identify on the nominal grid
+        from .resample import to_uniform
+
+        recording, rs = to_uniform(recording)
+        note = (f"resampled from jittered sample times (period jitter rms {rs.jitter_rms_s * 1e6:.0f} µs, "
+                f"max {rs.jitter_max_s * 1e6:.0f} µs) to a uniform {recording.sample_rate_hz:g} Hz grid")
     _check_recording(recording, opt)
     if opt.method is Method.PAPER:
         result = _identify_paper(recording, opt, _Stages(progress))
     else:
         result = _identify_hybrid(recording, opt, _Stages(progress))
+    if note is not None:
+        result.notes.insert(0, note)
     if progress is not None:
         progress("done", 1.0)
     return result
