@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from commission.cli import main
-from commission.csvlog import write_csv
+from commission.csvlog import read_csv, write_csv
 from commission.mcaplog import read_recording
 
 
@@ -132,3 +132,41 @@ def test_help_explains_every_mode():
     out = subprocess.run([sys.executable, "-m", "commission.cli", "--help"], capture_output=True, text=True).stdout
     for word in ("--sim", "--port", "--replay", "--config", "--out", "--interface", "--json", "run.mcap"):
         assert word in out
+
+
+@pytest.fixture(scope="module")
+def good_csv(sim_run, tmp_path_factory):
+    path = tmp_path_factory.mktemp("csv") / "axis.csv"
+    write_csv(path, read_recording(sim_run / "run.mcap"))
+    return path
+
+
+@pytest.mark.parametrize(
+    "change, config, fragment",
+    [
+        ("short", None, "too short for a 0.1 Hz resolution"),
+        (None, "identification:\n  band_hz: [0.1, 4500]\n", "above Nyquist"),
+        ("flat_torque", None, "torque_ref is constant"),
+        ("saturated", None, "saturated"),
+        ("noise", None, "cannot explain the data"),
+    ],
+)
+def test_identification_bad_input_is_one_line_exit_6(good_csv, tmp_path, capsys, change, config, fragment):
+    rec = read_csv(good_csv)
+    if change == "short":
+        rec = rec.head(40_000)
+    elif change == "flat_torque":
+        rec = rec.replace(torque_ref=np.full(len(rec), 0.1))
+    elif change == "saturated":
+        rec = rec.replace(motor_velocity=np.clip(rec.motor_velocity, -5.0, 5.0))
+    elif change == "noise":  # a velocity that has nothing to do with the torque
+        rng = np.random.default_rng(0)
+        v = np.cumsum(rng.standard_normal(len(rec))) * 0.01
+        rec = rec.replace(motor_velocity=v, motor_position=np.cumsum(v) / 8000.0)
+    f = tmp_path / "in.csv"
+    write_csv(f, rec)
+    argv = ["--replay", str(f), "--out", str(tmp_path / "o")]
+    if config is not None:
+        (tmp_path / "c.yaml").write_text(config)
+        argv += ["--config", str(tmp_path / "c.yaml")]
+    assert fragment in _one_line_error(argv, capsys, 6)
