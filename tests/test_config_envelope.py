@@ -68,10 +68,22 @@ def test_default_experiment_passes_and_reports_its_peaks():
     [
         (SafetyConfig(max_speed_rad_s=15.0), "above the speed limit"),
         (SafetyConfig(max_travel_rad=40.0), "above the travel limit"),
-        (SafetyConfig(max_torque_nm=0.2), "above the limit of 0.2 N·m"),
+        (SafetyConfig(max_torque_nm=0.2), "excitation torque peaks at 0.3056 N·m, above the limit of 0.2 N·m"),
     ],
 )
 def test_envelope_refuses(safety, fragment):
     w = chirp(Config().excitation)
     with pytest.raises(SafetyLimitExceeded, match=fragment):
         check_envelope(w.samples, w.sample_rate_hz, safety)
+
+
+def test_velocity_reference_envelope():
+    from commission.envelope import check_velocity_envelope
+    from commission.excitation import velocity_reversal
+
+    w = velocity_reversal(1.5, 0.5, 4.0, 8000.0)
+    check = check_velocity_envelope(w.samples, w.sample_rate_hz, SafetyConfig())
+    assert check.predicted_peak_speed_rad_s == pytest.approx(1.5, rel=1e-6)
+    assert check.predicted_peak_travel_rad == pytest.approx(2 * 1.5 / (2 * np.pi * 0.5), rel=1e-3)
+    with pytest.raises(SafetyLimitExceeded, match="velocity reference would reach 1.5 rad/s"):
+        check_velocity_envelope(w.samples, w.sample_rate_hz, SafetyConfig(max_speed_rad_s=1.6))

@@ -45,61 +45,49 @@ def rigid_body_response(
     return v, x
 
 
+def _checked(
+    peak_torque_nm: float, v: NDArray[np.float64], x: NDArray[np.float64], safety: SafetyConfig, what: str
+) -> EnvelopeCheck:
+    """Hold predicted (or commanded) peaks to the limits; raises naming the limit."""
+    check = EnvelopeCheck(
+        peak_torque_nm=peak_torque_nm,
+        predicted_peak_speed_rad_s=float(np.max(np.abs(v))),
+        predicted_peak_travel_rad=float(np.max(np.abs(x))),
+        margin=safety.margin,
+        max_torque_nm=safety.max_torque_nm,
+        max_speed_rad_s=safety.max_speed_rad_s,
+        max_travel_rad=safety.max_travel_rad,
+    )
+    if peak_torque_nm > safety.max_torque_nm:
+        raise SafetyLimitExceeded(
+            f"{what} torque peaks at {peak_torque_nm:.4g} N·m, above the limit of {safety.max_torque_nm:.4g} N·m"
+        )
+    m = safety.margin
+    if check.predicted_peak_speed_rad_s * m > safety.max_speed_rad_s:
+        raise SafetyLimitExceeded(
+            f"{what} would reach {check.predicted_peak_speed_rad_s:.4g} rad/s (×{m:g} margin), "
+            f"above the speed limit of {safety.max_speed_rad_s:.4g} rad/s"
+        )
+    if check.predicted_peak_travel_rad * m > safety.max_travel_rad:
+        raise SafetyLimitExceeded(
+            f"{what} would travel {check.predicted_peak_travel_rad:.4g} rad (×{m:g} margin), "
+            f"above the travel limit of {safety.max_travel_rad:.4g} rad"
+        )
+    return check
+
+
 def check_envelope(torque_nm: NDArray[np.float64], sample_rate_hz: float, safety: SafetyConfig) -> EnvelopeCheck:
     """Check a torque waveform against the envelope; raises SafetyLimitExceeded, naming the limit."""
     tau = np.asarray(torque_nm, dtype=float)
     if not np.all(np.isfinite(tau)):
         raise SafetyLimitExceeded("excitation contains non-finite samples")
     v, x = rigid_body_response(tau, sample_rate_hz, safety.planning_inertia_kg_m2, safety.planning_damping_nm_s_per_rad)
-    check = EnvelopeCheck(
-        peak_torque_nm=float(np.max(np.abs(tau))),
-        predicted_peak_speed_rad_s=float(np.max(np.abs(v))),
-        predicted_peak_travel_rad=float(np.max(np.abs(x))),
-        margin=safety.margin,
-        max_torque_nm=safety.max_torque_nm,
-        max_speed_rad_s=safety.max_speed_rad_s,
-        max_travel_rad=safety.max_travel_rad,
-    )
-    if check.peak_torque_nm > safety.max_torque_nm:
-        raise SafetyLimitExceeded(
-            f"excitation torque peaks at {check.peak_torque_nm:.4g} N·m, above the limit of {safety.max_torque_nm:.4g} N·m"
-        )
-    m = safety.margin
-    if check.predicted_peak_speed_rad_s * m > safety.max_speed_rad_s:
-        raise SafetyLimitExceeded(
-            f"excitation would reach {check.predicted_peak_speed_rad_s:.4g} rad/s (×{m:g} margin), "
-            f"above the speed limit of {safety.max_speed_rad_s:.4g} rad/s"
-        )
-    if check.predicted_peak_travel_rad * m > safety.max_travel_rad:
-        raise SafetyLimitExceeded(
-            f"excitation would travel {check.predicted_peak_travel_rad:.4g} rad (×{m:g} margin), "
-            f"above the travel limit of {safety.max_travel_rad:.4g} rad"
-        )
-    return check
+    return _checked(float(np.max(np.abs(tau))), v, x, safety, "excitation")
 
 
 def check_velocity_envelope(velocity_rad_s: NDArray[np.float64], sample_rate_hz: float, safety: SafetyConfig) -> EnvelopeCheck:
-    """Check a velocity reference: its peak and its integral (travel), times the margin."""
+    """Check a velocity reference: its peak and its integral (travel), times the margin (torque not predicted)."""
     v = np.asarray(velocity_rad_s, dtype=float)
-    x = np.cumsum(v) / sample_rate_hz
-    check = EnvelopeCheck(
-        peak_torque_nm=float("nan"),
-        predicted_peak_speed_rad_s=float(np.max(np.abs(v))),
-        predicted_peak_travel_rad=float(np.max(np.abs(x))),
-        margin=safety.margin,
-        max_torque_nm=safety.max_torque_nm,
-        max_speed_rad_s=safety.max_speed_rad_s,
-        max_travel_rad=safety.max_travel_rad,
-    )
-    m = safety.margin
-    if check.predicted_peak_speed_rad_s * m > safety.max_speed_rad_s:
-        raise SafetyLimitExceeded(
-            f"velocity reference peaks at {check.predicted_peak_speed_rad_s:.4g} rad/s (×{m:g} margin), "
-            f"above the speed limit of {safety.max_speed_rad_s:.4g} rad/s"
-        )
-    if check.predicted_peak_travel_rad * m > safety.max_travel_rad:
-        raise SafetyLimitExceeded(
-            f"velocity reference travels {check.predicted_peak_travel_rad:.4g} rad (×{m:g} margin), "
-            f"above the travel limit of {safety.max_travel_rad:.4g} rad"
-        )
-    return check
+    if not np.all(np.isfinite(v)):
+        raise SafetyLimitExceeded("velocity reference contains non-finite samples")
+    return _checked(float("nan"), v, np.cumsum(v) / sample_rate_hz, safety, "velocity reference")
