@@ -1,9 +1,12 @@
 """``python -m sim_drive``: run the simulated drive behind a fieldbus until Ctrl-C.
 
     python -m sim_drive --canopen --interface socketcan --channel vcan0 [--node-id 1]
+    python -m sim_drive --slcan  [--config FILE] [--seed N]   # prints the pty's path first
+    python -m sim_drive --modbus [--config FILE] [--seed N]   # prints the pty's path first
 
-One option per link (``--canopen`` now; the serial-adapter issue adds ``--slcan`` and
-``--modbus`` to the same group); the plant and drive options are shared by all links.
+One option per link; the plant and drive options are shared by all links. ``--slcan``
+and ``--modbus`` open a pty and print its path as the first line on stdout: point
+``commission --port PATH --interface slcan`` or ``--protocol modbus`` at it.
 python-can's ``virtual`` interface does not cross processes: run a commissioning
 against this node over SocketCAN (``ip link add dev vcan0 type vcan``) or a real adapter.
 """
@@ -29,13 +32,27 @@ def build_parser() -> argparse.ArgumentParser:
     link = p.add_argument_group("link (choose one)")
     which = link.add_mutually_exclusive_group(required=True)
     which.add_argument("--canopen", action="store_true", help="a CiA 402 node on a python-can bus")
+    which.add_argument("--slcan", action="store_true",
+                       help="an slcan (Lawicel) serial CAN adapter on a pty, the CiA 402 node behind it")
+    which.add_argument("--modbus", action="store_true", help="the drive's Modbus RTU service port on a pty")
     can_opts = p.add_argument_group("CAN options (with --canopen)")
     can_opts.add_argument("--interface", default="socketcan", help="python-can interface (default: socketcan)")
     can_opts.add_argument("--channel", default="vcan0", help="CAN channel (default: vcan0)")
     can_opts.add_argument("--bitrate", type=int, help="bit rate for adapters that need one")
     can_opts.add_argument("--node-id", type=int, default=1, help="CANopen node id (default: 1)")
+    serial_opts = p.add_argument_group("serial options (with --slcan / --modbus)")
+    serial_opts.add_argument("--line-rate", type=float, metavar="BIT/S",
+                             help="model a UART at this bit rate (8N1, half duplex); default: pty speed, not modelled")
+    serial_opts.add_argument("--inject", action="append", default=[], metavar="FAULT",
+                             help="link fault: garble|truncate|crc|mute|hangup[@N[+]] (N: answer number, for "
+                                  "hangup the playback sample; +: and every later one); repeatable")
+    serial_opts.add_argument("--watchdog", type=float, default=1.0, metavar="S",
+                             help="--modbus: fault the drive when the host is silent this long while enabled (0: off)")
     drive = p.add_argument_group("drive and plant")
-    drive.add_argument("--seed", type=int, default=0, help="seed of the plant's torque noise")
+    drive.add_argument("--config", metavar="FILE",
+                       help="commissioning recipe whose 'sim' section is the plant (as commission --sim --config)")
+    drive.add_argument("--seed", type=int, help="seed of the plant's torque noise (overrides sim.seed; default 0)")
+    drive.add_argument("--trace-capacity", type=int, metavar="N", help="samples the trace buffer holds")
     drive.add_argument("--pace", type=float, default=1.0,
                        help="waveform playback speed as a multiple of real time (default 1; 0: as fast as possible)")
     drive.add_argument("--run-for", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
@@ -44,7 +61,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    device = SimulatedDevice(PlantParameters(seed=args.seed))
+    try:
+        device = _device(args)
+    except Exception as err:  # a bad config or plant: one line
+        print(f"sim_drive: {err}", file=sys.stderr)
+        return 2
+    if args.slcan or args.modbus:
+        return _serve_pty(args, device)
     if args.canopen:
         from .canopen_slave import CanopenSlave
 
@@ -70,6 +93,57 @@ def main(argv: Sequence[str] | None = None) -> int:
                 break
     finally:
         node.close()
+    return 0
+
+
+def _device(args: argparse.Namespace) -> SimulatedDevice:
+    """The simulated drive with the plant ``commission --sim`` would use for the same config and seed."""
+    from commission.config import load_config
+    from commission.drive.sim import plant_from_options
+
+    plant = dict(load_config(args.config).sim)
+    if args.seed is not None:
+        plant["seed"] = args.seed
+    options = {"trace_capacity": args.trace_capacity} if args.trace_capacity else {}
+    return SimulatedDevice(plant_from_options(plant), **options)
+
+
+def _serve_pty(args: argparse.Namespace, device: SimulatedDevice) -> int:
+    from .serial_slave import ModbusRtuServer, SlcanAdapter, parse_fault
+
+    try:
+        faults = tuple(parse_fault(f) for f in args.inject)
+    except ValueError as err:
+        print(f"sim_drive: {err}", file=sys.stderr)
+        return 2
+    pace = args.pace or None
+    server: SlcanAdapter | ModbusRtuServer
+    if args.slcan:
+        server = SlcanAdapter(device, node_id=args.node_id, pace=pace, faults=faults, line_rate_bps=args.line_rate)
+    else:
+        server = ModbusRtuServer(device, pace=pace, faults=faults, line_rate_bps=args.line_rate,
+                                 watchdog_s=args.watchdog)
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    server.start()
+    print(server.path, flush=True)  # the first line on stdout: the host's --port
+    link = "slcan adapter, CANopen node %d" % args.node_id if args.slcan else "Modbus RTU device 1"
+    rate = f"line modelled at {args.line_rate:g} bit/s" if args.line_rate else "pty speed (line rate not modelled)"
+    print(f"sim_drive: {link} on {server.path} ({rate}); Ctrl-C stops", file=sys.stderr, flush=True)
+    deadline = None if args.run_for is None else time.monotonic() + args.run_for
+    try:
+        while not stop.wait(0.1):
+            if deadline is not None and time.monotonic() > deadline:
+                break
+    finally:
+        server.close()
+        if isinstance(server, SlcanAdapter):
+            print(f"sim_drive: {server.frames_from_host} frames from the host, {server.frames_to_host} to it, "
+                  f"{server.bad_lines} malformed lines {server.last_bad_line!r}", file=sys.stderr)
+        else:
+            print(f"sim_drive: {server.requests} requests, {server.responses} responses, "
+                  f"{server.crc_errors} with a bad CRC", file=sys.stderr)
     return 0
 
 

@@ -86,6 +86,9 @@ class BlockSdoServer(SdoServer):
     """
 
     BLKSIZE = 127
+    #: a block transfer silent for this long is over (the client gave up without an abort
+    #: frame, as canopen's stream does when it raises on close) [s]
+    BLOCK_TIMEOUT_S = 0.5
 
     def __init__(self, rx_cobid: int, tx_cobid: int, node: canopen.LocalNode,
                  size_check: Callable[[int, int, int], None] | None = None) -> None:
@@ -105,11 +108,15 @@ class BlockSdoServer(SdoServer):
         #: object indices whose requests are ignored (test hook: a stalled firmware)
         self.stalled: set[int] = set()
         self.muted = False
+        self._last_frame_s = 0.0
 
     def on_request(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self.muted:
             return
         self.frames_in += 1
+        if self._mode != "idle" and timestamp - self._last_frame_s > self.BLOCK_TIMEOUT_S:
+            self._mode = "idle"  # the SDO protocol timeout of a real server
+        self._last_frame_s = timestamp
         command = data[0]
         if command == REQUEST_ABORTED or (self._mode != "down" and command & 0xE0 == REQUEST_ABORTED):
             self._mode = "idle"  # in a sub-block only 0x80 (sequence number 0) is an abort

@@ -179,3 +179,22 @@ def test_sim_drive_module_runs_a_node_for_a_while():
 def test_eds_files_are_where_the_package_finds_them():
     assert Path(sim_eds_path()).is_file()
     assert Mode.CYCLIC_SYNC_TORQUE == 10
+
+
+def test_block_server_forgets_a_transfer_the_client_abandoned():
+    """canopen's client can give up a block download without an abort frame: the server's
+    protocol timeout must bring it back to serving ordinary requests."""
+    import canopen
+
+    from sim_drive.canopen_slave import BlockSdoServer
+
+    node = canopen.LocalNode(5, canopen.ObjectDictionary())
+    server = BlockSdoServer(0x600 + 5, 0x580 + 5, node)
+    sent = []
+    server.send_response = lambda data: sent.append(bytes(data))  # type: ignore[method-assign]
+    server._mode = "down"  # mid-transfer, as after a failed block download
+    server._last_frame_s = 100.0
+    upload_1000 = bytearray([0x40, 0x00, 0x10, 0x00, 0, 0, 0, 0])  # upload 0x1000:00
+    server.on_request(0x605, upload_1000, 100.0 + 2 * BlockSdoServer.BLOCK_TIMEOUT_S)
+    assert server._mode == "idle"
+    assert sent and sent[-1][0] == 0x80  # a proper answer (abort: 0x1000 is not in this dictionary)

@@ -27,6 +27,8 @@ modes:
   commission --sim                       full experiment on the built-in simulated drive
   commission --port can0                 CANopen drive on SocketCAN can0 (CiA 402)
   commission --sim --sim-link canopen    the simulated drive as a CANopen node on a virtual bus
+  commission --port /dev/ttyACM0 --interface slcan --drive NAME   CANopen through a serial-line CAN adapter
+  commission --port /dev/ttyUSB0 --protocol modbus [--drive NAME]  Modbus RTU on the drive's service port
   commission --replay run.mcap --out D   identify again from a log (.mcap or .csv)
 
 outputs (in --out DIR, default ./commissioning/<date-time>/):
@@ -61,8 +63,9 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--replay", metavar="FILE", type=Path, help="no drive: read a recorded run (.mcap or .csv) and identify it")
     link = p.add_argument_group("link options (with --port)")
     link.add_argument("--interface", metavar="NAME", help="python-can interface for CAN ports (default: socketcan)")
-    link.add_argument("--bitrate", metavar="BIT/S", type=int, help="CAN bit rate (default: the adapter's)")
-    link.add_argument("--node-id", metavar="ID", type=int, help="CANopen node id of the drive")
+    link.add_argument("--bitrate", metavar="BIT/S", type=int,
+                      help="CAN bit rate; with --protocol modbus: the line's baud rate (default: the drive description's)")
+    link.add_argument("--node-id", metavar="ID", type=int, help="CANopen node id, or the Modbus device address")
     link.add_argument("--protocol", choices=["canopen", "modbus"], help="protocol on the port (default: canopen for CAN)")
     link.add_argument("--drive", metavar="NAME", help="drive description under drivers/ (sim, generic-cia402, yaskawa-sigma7; default generic-cia402)")
     link.add_argument(
@@ -242,7 +245,8 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     link_options = {k: v for k, v in (("bitrate", args.bitrate), ("node_id", args.node_id), ("drive", args.drive))
                     if v is not None}
     over_can = (args.sim and args.sim_link == "canopen") or (
-        args.port is not None and args.protocol != "modbus" and not args.port.startswith("/dev/")
+        args.port is not None and args.protocol != "modbus"
+        and (args.interface is not None or not args.port.startswith("/dev/"))
     )
     if over_can:
         link_options.update(band_hz=config.excitation.f_end_hz, allow_narrow_band=args.allow_narrow_band)

@@ -25,10 +25,9 @@ __all__ = [
 BACKENDS: dict[str, tuple[str, str]] = {
     "sim": ("commission.drive.sim", "SimDrive"),
     "canopen": ("commission.drive.canopen", "CanopenDrive"),
+    "modbus": ("commission.drive.modbus", "ModbusDrive"),
 }
-PLANNED: dict[str, str] = {
-    "modbus": "the Modbus RTU backend",
-}
+PLANNED: dict[str, str] = {}
 #: How ``--sim`` reaches the simulated drive: directly, or as a CANopen node on python-can's
 #: in-process ``virtual`` bus with the canopen backend in front of it.
 SIM_LINKS = ("direct", "canopen")
@@ -65,7 +64,8 @@ def open_drive(
         the in-process virtual bus, driven by the canopen backend (``options`` go to it).
     :param port: ``can0``-style CAN channel, or a serial device path.
     :param interface: python-can interface (``socketcan``, ``slcan``, …) for CAN ports.
-    :param protocol: ``canopen`` (default for CAN) or ``modbus`` (serial service ports).
+    :param protocol: ``canopen`` (default for CAN, and for ``--interface slcan`` adapters on serial
+        ports) or ``modbus`` (serial service ports; the default for a /dev/ port without an interface).
     """
     if sim:
         if port is not None:
@@ -85,4 +85,12 @@ def open_drive(
     if port.startswith("/dev/") and not Path(port).exists():
         raise DriveNotFound(f"port {port} does not exist")
     backend = protocol or ("modbus" if port.startswith("/dev/") and interface is None else "canopen")
+    if backend == "canopen" and interface == "slcan":
+        # a serial-line CAN adapter: port locked, adapter probed, every line it sends checked
+        _backend_class("canopen")  # loads, or says why the canopen backend cannot
+        from .slcan import open_slcan
+
+        return open_slcan(port, **options)
+    if backend == "modbus" and interface is not None:
+        raise DriveError(f"--interface {interface} is for CAN adapters; --protocol modbus talks to the serial port itself")
     return _backend_class(backend)(port=port, interface=interface, **options)

@@ -11,6 +11,10 @@ Where the folders are found (first that exists):
    ``/opt/drive-commission/drivers``);
 2. ``drivers/`` of the source tree this package was imported from (editable install).
 
+A drive reachable on a serial service port also has a Modbus RTU / MEMOBUS
+register map: ``modbus:`` inline, or ``modbus.yaml`` beside ``description.yaml``
+(:class:`ModbusSpec`), read by the ``modbus`` backend and by ``sim_drive --modbus``.
+
 Errors are one-liners: an unknown drive name or a missing folder is a
 :class:`~commission.exceptions.ConfigError`, as is an invalid description file.
 """
@@ -31,11 +35,15 @@ from ..exceptions import ConfigError
 __all__ = [
     "DRIVERS_ENV", "ChannelUnit", "DriveDescription", "ExcitationMethod", "ObjectRef", "ParameterSpec",
     "TraceChannel", "drivers_dir", "list_drives", "load_description",
+    "ModbusParameter", "ModbusRegister", "ModbusRegisters", "ModbusSpec", "ModbusString", "ModbusTrace",
+    "ModbusTraceChannel", "ModbusWaveform",
 ]
 
 #: Environment variable naming the folder of drive descriptions.
 DRIVERS_ENV = "COMMISSION_DRIVERS"
 DESCRIPTION_FILE = "description.yaml"
+#: Optional register map for the Modbus RTU backend, beside description.yaml (or inline: ``modbus:``).
+MODBUS_FILE = "modbus.yaml"
 
 #: struct format and size of the integer types a description may use.
 INT_TYPES: dict[str, tuple[str, int]] = {
@@ -163,6 +171,152 @@ class UnitsSpec(_Model):
     """unit of 0x606C velocity actual value."""
 
 
+# -- Modbus RTU / MEMOBUS register map (drivers/<name>/modbus.yaml) --------------------------------
+#: registers (16 bit) each integer type occupies
+REGISTER_WORDS: dict[str, int] = {name: max(1, size // 2) for name, (_, size) in INT_TYPES.items()}
+
+
+class ModbusRegister(_Model):
+    """One value in holding registers: ``{address: 0x0101, type: uint16}`` (32-bit types take two)."""
+
+    address: int = Field(ge=0, le=0xFFFF)
+    type: IntType = "uint16"
+
+    @property
+    def words(self) -> int:
+        return REGISTER_WORDS[self.type]
+
+    def __str__(self) -> str:
+        return f"register 0x{self.address:04X}"
+
+
+class ModbusString(_Model):
+    """An ASCII string, two characters per register (high byte first), NUL-padded."""
+
+    address: int = Field(ge=0, le=0xFFFF)
+    registers: int = Field(ge=1, le=125)
+
+
+class ModbusRegisters(_Model):
+    """The CiA 402-like state control and unit registers the backend needs (roles fixed, addresses data)."""
+
+    device_type: ModbusRegister | None = None
+    """a signature register checked at connection against ``ModbusSpec.device_type`` (like CANopen 0x1000)."""
+    controlword: ModbusRegister
+    statusword: ModbusRegister
+    mode: ModbusRegister
+    mode_display: ModbusRegister | None = None
+    error_code: ModbusRegister
+    rated_torque_mnm: ModbusRegister
+    motor_increments: ModbusRegister
+    load_increments: ModbusRegister | None = None
+    sample_period_ns: ModbusRegister | None = None
+    capacity: ModbusRegister | None = None
+    max_torque: ModbusRegister
+    """per mille of the rated torque (as CiA 402 0x6072)."""
+    max_speed: ModbusRegister
+    """rpm (as CiA 402 0x6080)."""
+    position_actual: ModbusRegister | None = None
+    travel_min: ModbusRegister | None = None
+    travel_max: ModbusRegister | None = None
+
+
+class ModbusWaveform(_Model):
+    """Waveform download: write ``length`` (samples), then blocks of [offset (uint32), samples…] by FC 16
+    at ``select`` (the window follows the offset's two registers)."""
+
+    length: ModbusRegister
+    select: int = Field(ge=0, le=0xFFFF)
+    registers: int = Field(120, ge=2, le=121, description="sample registers per write (FC 16 carries <= 123)")
+    type: IntType = "int32"
+    torque_unit: ChannelUnit = ChannelUnit.RATED_TORQUE
+    torque_scale: float = Field(1e-6, gt=0)
+    velocity_unit: ChannelUnit = ChannelUnit.INCREMENT_PER_SECOND
+    velocity_scale: float = Field(1.0, gt=0)
+
+
+class ModbusTraceChannel(_Model):
+    """One recorded signal, selected by number in the trace window."""
+
+    channel: int = Field(ge=0, le=0xFFFF)
+    type: IntType = "int32"
+    unit: ChannelUnit
+    scale: float = Field(1.0, gt=0)
+    encoder: Literal["motor", "load"] = "motor"
+
+
+class ModbusTrace(_Model):
+    """Trigger, progress and the trace window: [channel (uint16), offset (uint32)] at ``select``, then the
+    window's ``registers`` at ``window``; read together by FC 23 (``read_write``) or FC 16 + FC 3."""
+
+    start: ModbusRegister
+    start_value: int = 1
+    stop_value: int = 0
+    progress: ModbusRegister
+    length: ModbusRegister
+    select: int = Field(ge=0, le=0xFFFF)
+    window: int = Field(ge=0, le=0xFFFF)
+    registers: int = Field(124, ge=2, le=125, description="registers per read (FC 3/23 carry <= 125)")
+    read_write: bool = Field(True, description="select and read in one FC 23 transaction")
+    channels: dict[str, ModbusTraceChannel]
+
+    @model_validator(mode="after")
+    def _known_signals(self) -> ModbusTrace:
+        known = {"torque_ref", "motor_position", "motor_velocity", "load_position", "load_velocity"}
+        unknown = sorted(set(self.channels) - known)
+        if unknown:
+            raise ValueError(f"unknown trace signal(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
+        for needed in ("torque_ref", "motor_velocity"):
+            if needed not in self.channels:
+                raise ValueError(f"trace must record '{needed}'")
+        return self
+
+
+class ModbusParameter(_Model):
+    """A named parameter in registers: ``value [unit] = raw · scale``; ``min``/``max`` bound ``raw``."""
+
+    address: int = Field(ge=0, le=0xFFFF)
+    type: IntType = "uint16"
+    unit: str = ""
+    scale: float = Field(1.0, gt=0)
+    min: float | None = None
+    max: float | None = None
+    maps_to: str = ""
+    note: str = ""
+
+    @property
+    def register(self) -> ModbusRegister:
+        return ModbusRegister(address=self.address, type=self.type)
+
+
+class ModbusSpec(_Model):
+    """The drive's serial service port in Modbus RTU (MEMOBUS-compatible): line, framing, register map."""
+
+    dialect: Literal["modbus", "memobus"] = "modbus"
+    device_id: int = Field(1, ge=1, le=247)
+    baudrate: int = Field(115200, gt=0)
+    parity: Literal["N", "E", "O"] = "N"
+    stopbits: Literal[1, 2] = 1
+    word_order: Literal["big", "little"] = Field(
+        "big", description="32-bit values: 'big' = high word at the lower address")
+    timeout_s: float = Field(0.5, gt=0, le=10)
+    retries: int = Field(2, ge=0, le=10)
+    device_type: int | None = Field(None, description="value the device_type register must hold")
+    identity: dict[Literal["vendor", "product", "serial", "firmware"], ModbusString] = Field(default_factory=dict)
+    registers: ModbusRegisters | None = None
+    waveform: ModbusWaveform | None = None
+    trace: ModbusTrace | None = None
+    parameters: dict[str, ModbusParameter] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _complete(self) -> ModbusSpec:
+        if (self.waveform is None) != (self.trace is None):
+            raise ValueError("'waveform' and 'trace' go together")
+        if self.trace is not None and self.registers is None:
+            raise ValueError("a trace needs the state-control 'registers'")
+        return self
+
+
 class DriveDescription(_Model):
     """One drive family (``drivers/<name>/description.yaml``)."""
 
@@ -184,6 +338,7 @@ class DriveDescription(_Model):
     units: UnitsSpec = UnitsSpec()
     error_codes: dict[int, str] = Field(default_factory=dict, description="0x603F / EMCY code -> text")
     parameters: dict[str, ParameterSpec] = Field(default_factory=dict)
+    modbus: ModbusSpec | None = Field(None, description="Modbus RTU register map (inline, or modbus.yaml beside)")
     folder: Path = Field(Path("."), exclude=True)
 
     @model_validator(mode="after")
@@ -255,6 +410,13 @@ def load_description(name_or_path: str | Path) -> DriveDescription:
         raise ConfigError(f"{path}: not valid YAML") from err
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: a drive description must be a mapping")
+    modbus = data.get("modbus", MODBUS_FILE if (folder / MODBUS_FILE).is_file() else None)
+    if isinstance(modbus, str):  # a file beside description.yaml
+        try:
+            modbus = yaml.safe_load((folder / modbus).read_text(encoding="utf-8"))
+        except (OSError, yaml.YAMLError) as err:
+            raise ConfigError(f"{folder / str(data.get('modbus', MODBUS_FILE))}: cannot read the Modbus map: {err}") from err
+        data = {**data, "modbus": modbus}
     try:
         desc = DriveDescription.model_validate({**data, "folder": folder})
     except ValidationError as err:
