@@ -34,6 +34,7 @@ modes:
 outputs (in --out DIR, default ./commissioning/<date-time>/):
   run.mcap       every sample sent and measured, the config and the drive's identity
   result.json    the identified two-mass model, its modes and the backlash (SI units)
+  report.html    self-contained report: Bode and time plots, the backlash search, metadata
   backlash-check.mcap   the velocity-reversal experiment (with --measure-backlash)
 
 exit codes: 0 ok, 1 other error, 2 config, 3 input file, 4 drive, 5 safety limit, 6 identification,
@@ -155,7 +156,7 @@ class _Terminal:
     def say(self, text: str) -> None:
         self.console.print(text)
 
-    def progress(self, label: str, done: int, total: int) -> None:
+    def progress(self, label: str, done: int, total: int, detail: str = "") -> None:
         if self.quiet:
             return
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -163,12 +164,13 @@ class _Terminal:
         if self._progress is None:
             self._progress = Progress(
                 TextColumn("{task.description:<12}"), BarColumn(), TextColumn("{task.percentage:>5.1f} %"),
-                TimeElapsedColumn(), console=self.console, transient=not self.console.is_terminal,
+                TimeElapsedColumn(), TextColumn("{task.fields[detail]}"),
+                console=self.console, transient=not self.console.is_terminal,
             )
             self._progress.start()
         if label not in self._tasks:
-            self._tasks[label] = self._progress.add_task(label, total=total)
-        self._progress.update(self._tasks[label], completed=done, total=total)
+            self._tasks[label] = self._progress.add_task(label, total=total, detail=detail)
+        self._progress.update(self._tasks[label], completed=done, total=total, detail=detail)
 
     def close(self) -> None:
         if self._progress is not None:
@@ -197,8 +199,13 @@ def _identifier(config: Config, args: argparse.Namespace, term: _Terminal) -> An
         options = options.model_copy(update={"method": args.method})
 
     def run(recording: Recording) -> Any:
-        def progress(stage: str, fraction: float) -> None:
-            term.progress("identify", int(round(1000 * fraction)), 1000)
+        def progress(stage: str, fraction: float, info: dict[str, Any] | None = None) -> None:
+            detail = stage
+            if info and "evaluations" in info:
+                detail = f"{stage}: {info['evaluations']} evaluations"
+                if info.get("best_epsilon_deg") is not None:
+                    detail += f", best ε {info['best_epsilon_deg']:.3f}°"
+            term.progress("identify", int(round(1000 * fraction)), 1000, detail)
 
         try:
             return identify(recording, options, progress=progress)
@@ -227,13 +234,21 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
             out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as err:
             raise OutputError(f"cannot create output folder {out_dir}: {err.strerror or err}") from err
+        identification = None
         if identify is not None:
             from .sequencer import write_result
 
             identification = identify(recording)
             result["identification"] = identification.to_dict(str(args.replay))
             result["files"].append(str(write_result(out_dir, identification, str(args.replay))))
+        from .sequencer import write_run_report
+
+        report = write_run_report(out_dir, recording, identification, _recorded_config(args.replay, config),
+                                  str(args.replay), [Path(f) for f in result["files"]])
+        if report is not None:
+            result["files"].append(str(report))
         term.summary(f"replay of {args.replay}", _rows(result))
+        _details(term, result)
         return result
 
     from .drive import open_drive
@@ -283,7 +298,36 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     if check is not None:
         result["files"].append(str(check[2]))
     term.summary("commissioning run", _rows(result))
+    _details(term, result)
     return result
+
+
+def _recorded_config(path: Path, config: Config) -> dict[str, Any]:
+    """The config stored in a replayed .mcap (it describes that run, e.g. its simulated
+    plant), else the current one."""
+    if path.suffix.lower() == ".mcap":
+        from .mcaplog import read_config
+
+        try:
+            return read_config(path)
+        except LogFormatError:
+            pass
+    from .config import config_to_dict
+
+    return config_to_dict(config)
+
+
+def _details(term: _Terminal, result: dict[str, Any]) -> None:
+    """-v: the identification's stages, iterations and notes."""
+    ident = result.get("identification")
+    if not term.verbose or ident is None:
+        return
+    rows = [(f"stage {s['name']}", f"{s['seconds']:.3f} s") for s in ident.get("stages", [])]
+    rows += [(f"iteration {i}", f"FRD error {it['frd_error']:.3g}  ε {it['epsilon_deg']:.4f}°")
+             for i, it in enumerate(ident.get("iterations", []))]
+    term.summary("details", rows)
+    for note in ident.get("notes", []):
+        term.say(f"note: {note}")
 
 
 def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
@@ -321,7 +365,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     term = _Terminal(quiet=args.json, verbose=args.verbose)
     try:
-        result = _run(args, term)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            result = _run(args, term)
+        for w in caught:  # e.g. a report that could not be drawn: said once, in one line
+            term.say(f"[yellow]warning:[/] {w.message}")
+            result.setdefault("warnings", []).append(str(w.message))
     except CommissionError as err:
         term.close()
         print(f"commission: error: {err}", file=sys.stderr)

@@ -38,10 +38,24 @@ they are. Sample times are repeated on every channel so that each message is
 self-contained (a topic can be read alone, in Foxglove or a script); zstd
 removes the repetition (+0.8 % file size, measured).
 
+For Foxglove (whose Plot panel plots message *fields* over log time, so the arrays of a
+block are not a time series there), the writer can add one more channel, opt-in with
+``plot_every=n``::
+
+    /samples   schema commission.samples, one message per n-th sample, all signals:
+               {"sample": 160, "t_s": 0.02, "torque_ref": 0.51, "motor_velocity": 3.2, ...}
+
+with ``log_time`` = ``publish_time`` = start_time + t_s and ``sequence`` = sample index, so
+``/samples.motor_velocity`` plots as a series. Its values are exact samples (every n-th, no
+filter); the blocks stay the exact, complete record, and readers here ignore ``/samples``.
+n = 8 gives 1 kHz for an 8 kHz trace (10,000 messages for 10 s). The ``recording`` metadata
+names the topic and n (``plot_topic``, ``plot_every``).
+
 Chunks end only between blocks: a chunk is closed (``Writer.flush``) once it
 holds ``chunk_size`` uncompressed bytes, so after a cut every signal has the
 same number of samples. Any other non-signal topic (``/identification`` …)
-carries one JSON object per message, see :meth:`RecordingWriter.add_result`.
+carries one JSON object per message, see :meth:`RecordingWriter.add_result`; a finished
+file gets one with :func:`append_result` (the file is rewritten, then replaced atomically).
 
 Reading walks the top-level records (opcode, length) to find where the last
 complete one ends, then parses them in one pass with mcap's ``StreamReader``
@@ -95,7 +109,10 @@ __all__ = [
     "FORMAT_VERSION",
     "JsonDecoderFactory",
     "RecordingWriter",
+    "PLOT_TOPIC",
     "TruncatedLogWarning",
+    "append_result",
+    "plot_schema",
     "read_config",
     "read_recording",
     "read_results",
@@ -111,6 +128,8 @@ _EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
 #: Bytes a Message record adds around its data (opcode, length, channel, sequence, 2 times).
 _MESSAGE_OVERHEAD = 1 + 8 + 2 + 4 + 8 + 8
 _SIGNAL_TOPICS: Mapping[str, str] = {f"/{name}": name for name in SIGNAL_UNITS}
+#: Topic of the per-sample messages for Foxglove's Plot panel (``plot_every``).
+PLOT_TOPIC = "/samples"
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 try:
@@ -161,6 +180,25 @@ def signal_schema(name: str) -> dict[str, Any]:
     }
 
 
+def plot_schema(signals: Sequence[str]) -> dict[str, Any]:
+    """The JSON schema of the ``/samples`` messages carrying ``signals`` (one sample each)."""
+    props: dict[str, Any] = {
+        "sample": {"type": "integer", "minimum": 0, "description": "index of the sample in the recording"},
+        "t_s": {"type": "number", "description": "sample time since the recording's start_time [s]"},
+    }
+    for name in signals:
+        props[name] = {"type": "number", "description": f"{name} [{SIGNAL_UNITS[name]}]"}
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "commission.samples",
+        "description": "One sample of every signal, for plotting as series (every n-th sample of the recording).",
+        "type": "object",
+        "properties": props,
+        "required": list(props),
+        "additionalProperties": False,
+    }
+
+
 _RESULT_SCHEMA: Mapping[str, Any] = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "type": "object",
@@ -197,6 +235,8 @@ class RecordingWriter:
     :param compression: ``"zstd"``, ``"lz4"`` or ``"none"``.
     :param expected_samples: how many samples will come, when known; lets a reader of a cut
         file say how many are missing.
+    :param plot_every: also write every ``plot_every``-th sample as one message on ``/samples``
+        (all signals in one JSON object) for Foxglove's Plot panel; None (default): no such topic.
 
     Closing (or leaving the ``with`` block, also through an exception) writes the rest and the
     MCAP summary; an exception is recorded as ``status`` in the ``recording_end`` metadata.
@@ -218,6 +258,7 @@ class RecordingWriter:
         chunk_size: int = 64 * 1024,
         compression: str = "zstd",
         expected_samples: int | None = None,
+        plot_every: int | None = None,
     ) -> None:
         unknown = [s for s in signals if s not in SIGNAL_UNITS]
         if unknown:
@@ -235,6 +276,9 @@ class RecordingWriter:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
         if compression not in _COMPRESSION:
             raise ValueError(f"compression must be one of {', '.join(_COMPRESSION)}, got {compression!r}")
+        if plot_every is not None and (int(plot_every) != plot_every or plot_every < 1):
+            raise ValueError(f"plot_every must be a positive integer or None, got {plot_every!r}")
+        self._plot_every = int(plot_every) if plot_every is not None else None
         self._path = os.fspath(path)
         self._signals: tuple[str, ...] = tuple(s for s in SIGNAL_UNITS if s in signals)
         self._spm = int(samples_per_message)
@@ -276,6 +320,9 @@ class RecordingWriter:
             }
             if expected_samples is not None:
                 info["expected_samples"] = str(int(expected_samples))
+            if self._plot_every is not None:
+                info["plot_topic"] = PLOT_TOPIC
+                info["plot_every"] = str(self._plot_every)
             self._writer.add_metadata("recording", info)
             self._writer.add_metadata("recording_metadata", {str(k): str(v) for k, v in (metadata or {}).items()})
             self._writer.add_metadata(
@@ -294,6 +341,20 @@ class RecordingWriter:
                     message_encoding=MessageEncoding.JSON,
                     schema_id=schema_id,
                     metadata={"unit": SIGNAL_UNITS[name]},
+                )
+            self._plot_channel: int | None = None
+            if self._plot_every is not None:
+                plot_schema_id = self._writer.register_schema(
+                    name="commission.samples",
+                    encoding=SchemaEncoding.JSONSchema,
+                    data=json.dumps(plot_schema(self._signals)).encode(),
+                )
+                self._plot_channel = self._writer.register_channel(
+                    topic=PLOT_TOPIC,
+                    message_encoding=MessageEncoding.JSON,
+                    schema_id=plot_schema_id,
+                    metadata={"plot_every": str(self._plot_every),
+                              **{name: SIGNAL_UNITS[name] for name in self._signals}},
                 )
         except BaseException:
             self._file.close()
@@ -359,6 +420,8 @@ class RecordingWriter:
             raise ValueError(f"topic must start with '/', got {topic!r}")
         if topic in _SIGNAL_TOPICS:
             raise ValueError(f"topic {topic} is reserved for the signal {_SIGNAL_TOPICS[topic]}")
+        if topic == PLOT_TOPIC:
+            raise ValueError(f"topic {topic} is reserved for the per-sample plot messages")
         if not isinstance(payload, Mapping):
             raise TypeError(f"result payload must be a mapping, got {type(payload).__name__}")
         try:
@@ -452,10 +515,33 @@ class RecordingWriter:
                 self._channels[name], log_time=stamp, data=data, publish_time=stamp, sequence=self._block
             )
             self._chunk_bytes += len(data) + _MESSAGE_OVERHEAD
+        if self._plot_channel is not None:
+            self._emit_plot(t, signals)
         self._n_written += t.shape[0]
         self._block += 1
         if self._chunk_bytes >= self._chunk_size:
             self._close_chunk()
+
+
+    def _emit_plot(self, t: NDArray[np.float64], signals: Mapping[str, NDArray[np.float64]]) -> None:
+        """One ``/samples`` message per ``plot_every``-th sample of the block about to be written."""
+        assert self._plot_every is not None and self._plot_channel is not None
+        first = self._n_written
+        offset = (-first) % self._plot_every
+        idx = range(offset, t.shape[0], self._plot_every)
+        if not idx:
+            return
+        t_list = t.tolist()
+        columns = [(f',"{name}":', signals[name].tolist()) for name in self._signals]
+        for k in idx:
+            tk = t_list[k]
+            stamp = max(0, min(self._start_ns + round(tk * 1e9), 2**64 - 1))
+            data = (f'{{"sample":{first + k},"t_s":{tk!r}'
+                    + "".join(f"{key}{col[k]!r}" for key, col in columns) + "}").encode()
+            self._writer.add_message(
+                self._plot_channel, log_time=stamp, data=data, publish_time=stamp, sequence=first + k
+            )
+            self._chunk_bytes += len(data) + _MESSAGE_OVERHEAD
 
 
 def _block_array(name: str, values: ArrayLike, n: int | None) -> NDArray[np.float64]:
@@ -477,8 +563,11 @@ def write_recording(
     samples_per_message: int = 80,
     chunk_size: int = 64 * 1024,
     compression: str = "zstd",
+    plot_every: int | None = None,
 ) -> None:
-    """Write ``recording`` (and the run's ``config``) to the MCAP file ``path``."""
+    """Write ``recording`` (and the run's ``config``) to the MCAP file ``path``.
+
+    ``plot_every=n`` adds the ``/samples`` topic for Foxglove (module docstring)."""
     with RecordingWriter(
         path,
         sample_rate_hz=recording.sample_rate_hz,
@@ -491,6 +580,7 @@ def write_recording(
         chunk_size=chunk_size,
         compression=compression,
         expected_samples=len(recording),
+        plot_every=plot_every,
     ) as writer:
         writer.append(recording.t, **dict(recording.signals()))
 
@@ -567,9 +657,10 @@ def _frame(path: str, data: bytes) -> _Framing:
     return _Framing(stop=pos, complete=False)
 
 
-def _records(path: str, data: bytes, framing: _Framing) -> Iterator[Any]:
+def _records(path: str, data: bytes, framing: _Framing, *, emit_chunks: bool = False) -> Iterator[Any]:
     """Records up to ``framing.stop`` (chunks opened, CRCs checked), via mcap's StreamReader."""
-    reader = StreamReader(io.BytesIO(data[len(_MAGIC) : framing.stop]), skip_magic=True, validate_crcs=True)
+    reader = StreamReader(io.BytesIO(data[len(_MAGIC) : framing.stop]), skip_magic=True, validate_crcs=True,
+                          emit_chunks=emit_chunks)
     try:
         yield from reader.records
     except EndOfFile:  # framing.stop is a record boundary: the stream ends cleanly there
@@ -592,6 +683,8 @@ def _scan(path: str, *, signals: bool = True, results: bool = True, stop_after: 
             contents.n_messages += 1
             contents.message_counts[record.channel_id] = contents.message_counts.get(record.channel_id, 0) + 1
             name = _SIGNAL_TOPICS.get(channel.topic)
+            if channel.topic == PLOT_TOPIC:
+                continue  # a decimated copy of the blocks, for Foxglove
             if name is not None:
                 if signals:
                     contents.blocks.setdefault(name, []).append(_decode_block(path, channel.topic, record))
@@ -766,6 +859,146 @@ def read_results(path: str | os.PathLike[str]) -> dict[str, list[dict[str, Any]]
             stacklevel=2,
         )
     return contents.results
+
+
+def append_result(
+    path: str | os.PathLike[str],
+    topic: str,
+    payload: Mapping[str, Any],
+    *,
+    schema: Mapping[str, Any] | None = None,
+    log_time_ns: int | None = None,
+) -> None:
+    """Add ``payload`` as one JSON message on ``topic`` to a *finished* log (e.g. the
+    identification after the run: the log is closed before the identifier runs, so that a
+    crash there cannot cost the samples).
+
+    An MCAP file cannot grow after its summary, so the file is rewritten record by record
+    (same chunks, same messages, metadata and attachments, CRCs checked while reading) with
+    the result in a chunk of its own just before the ``recording_end`` metadata, into a
+    temporary file beside it that then replaces it atomically: a crash leaves the old file.
+    ``log_time_ns`` defaults to the last log time in the file (the end of the recording), so
+    the result sits at the end of Foxglove's timeline instead of stretching it to "now".
+
+    :raises LogFormatError: the file is not a complete MCAP file (no footer) or is corrupt.
+    :raises ValueError: bad topic, or a payload that is not JSON-serialisable.
+    """
+    from mcap.records import Attachment, Chunk, DataEnd, Header, MessageIndex
+    from mcap.stream_reader import breakup_chunk
+
+    p = os.fspath(path)
+    if not (isinstance(topic, str) and topic.startswith("/") and len(topic) > 1):
+        raise ValueError(f"topic must start with '/', got {topic!r}")
+    if topic in _SIGNAL_TOPICS or topic == PLOT_TOPIC:
+        raise ValueError(f"topic {topic} is reserved for samples")
+    if not isinstance(payload, Mapping):
+        raise TypeError(f"result payload must be a mapping, got {type(payload).__name__}")
+    try:
+        result_data = _dumps(dict(payload)).encode()
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"result for {topic} is not JSON-serialisable: {err}") from err
+    data = _load(p)
+    framing = _frame(p, data)
+    if not framing.complete:
+        raise LogFormatError(f"{p}: cannot add a result to a truncated or unfinished MCAP file")
+
+    tmp = f"{p}.tmp-{os.getpid()}"
+    try:
+        with open(tmp, "wb") as out:
+            writer: Writer | None = None
+            schema_ids: dict[int, int] = {}
+            channel_ids: dict[int, int] = {}
+            topics: dict[str, int] = {}
+            last_time = 0
+            done = False
+
+            def add_result_now() -> None:
+                assert writer is not None
+                channel_id = topics.get(topic)
+                if channel_id is None:
+                    schema_id = writer.register_schema(
+                        name=f"commission{topic.replace('/', '.')}",
+                        encoding=SchemaEncoding.JSONSchema,
+                        data=json.dumps(dict(schema) if schema is not None else _RESULT_SCHEMA).encode(),
+                    )
+                    channel_id = writer.register_channel(topic, MessageEncoding.JSON, schema_id)
+                stamp = last_time if log_time_ns is None else int(log_time_ns)
+                writer.add_message(channel_id, log_time=stamp, data=result_data, publish_time=stamp)
+                writer.flush()  # type: ignore[attr-defined]
+
+            def copy(record: Any) -> None:
+                nonlocal last_time
+                assert writer is not None
+                if isinstance(record, Schema):
+                    schema_ids[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+                elif isinstance(record, Channel):
+                    channel_ids[record.id] = writer.register_channel(
+                        record.topic, record.message_encoding, schema_ids.get(record.schema_id, 0),
+                        dict(record.metadata),
+                    )
+                    topics.setdefault(record.topic, channel_ids[record.id])
+                elif isinstance(record, Message):
+                    last_time = max(last_time, record.log_time)
+                    writer.add_message(channel_ids[record.channel_id], log_time=record.log_time,
+                                       data=record.data, publish_time=record.publish_time,
+                                       sequence=record.sequence)
+
+            for record in _records(p, data, _Framing(stop=framing.stop, complete=True), emit_chunks=True):
+                if isinstance(record, Header):
+                    writer = Writer(out, chunk_size=2**62, compression=_compression_of(data, framing))
+                    writer.start(profile=record.profile, library=record.library)
+                elif writer is None:
+                    raise LogFormatError(f"{p}: corrupt MCAP file (first record is not a header)")
+                elif isinstance(record, Chunk):
+                    try:
+                        inner = breakup_chunk(record, validate_crc=True)
+                    except (McapError, ValueError, zstandard.ZstdError) as err:
+                        raise LogFormatError(f"{p}: corrupt MCAP file ({err})") from err
+                    for r in inner:
+                        copy(r)
+                    writer.flush()  # type: ignore[attr-defined]  # keep the chunk boundaries
+                elif isinstance(record, (Schema, Channel, Message)):  # unchunked files
+                    copy(record)
+                elif isinstance(record, Metadata):
+                    if record.name == "recording_end" and not done:
+                        add_result_now()
+                        done = True
+                    writer.add_metadata(record.name, dict(record.metadata))
+                elif isinstance(record, Attachment):
+                    writer.add_attachment(record.create_time, record.log_time, record.name,
+                                          record.media_type, record.data)
+                elif isinstance(record, DataEnd):
+                    break
+                elif isinstance(record, MessageIndex):
+                    continue  # rebuilt by the writer
+            if writer is None:
+                raise LogFormatError(f"{p}: corrupt MCAP file (no header)")
+            if not done:
+                add_result_now()
+            writer.finish()
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(tmp, p)
+    except OSError as err:
+        raise LogFormatError(f"{p}: cannot rewrite the log to add {topic} ({err.strerror or err})") from err
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _compression_of(data: bytes, framing: _Framing) -> CompressionType:
+    """The compression of the first chunk of a file (zstd when it has none)."""
+    from mcap.records import Chunk
+
+    reader = StreamReader(io.BytesIO(data[len(_MAGIC) : framing.stop]), skip_magic=True, emit_chunks=True)
+    try:
+        for record in reader.records:
+            if isinstance(record, Chunk):
+                return {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}.get(
+                    record.compression, CompressionType.NONE)
+    except (EndOfFile, McapError, ValueError, struct.error):
+        pass
+    return CompressionType.ZSTD
 
 
 def read_config(path: str | os.PathLike[str]) -> dict[str, Any]:

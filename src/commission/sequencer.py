@@ -13,6 +13,7 @@ in the log.
 from __future__ import annotations
 
 import json
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,8 +23,8 @@ from .config import Config, config_to_dict
 from .drive import Drive, DriveError, Mode, State
 from .envelope import EnvelopeCheck, check_envelope, check_velocity_envelope
 from .excitation import Waveform, chirp, velocity_reversal
-from .exceptions import Aborted, CommissionError, DriveFault, OutputError
-from .mcaplog import write_recording
+from .exceptions import Aborted, CommissionError, DriveFault, LogFormatError, OutputError
+from .mcaplog import append_result, write_recording
 from .ident.reversal import ReversalCheck, backlash_from_reversals
 from .recording import Recording
 
@@ -35,6 +36,10 @@ Identifier = Callable[[Recording], Any]
 LOG_NAME = "run.mcap"
 RESULT_NAME = "result.json"
 CHECK_LOG_NAME = "backlash-check.mcap"
+REPORT_NAME = "report.html"
+#: Every n-th sample also goes to the log's /samples topic, for Foxglove's Plot panel
+#: (1 kHz at the 8 kHz trace rate; the exact record stays in the sample blocks).
+PLOT_EVERY = 8
 
 
 @dataclass(frozen=True)
@@ -58,6 +63,35 @@ def write_result(out_dir: Path, identification: Any, source_file: str | None) ->
     except OSError as err:
         raise OutputError(f"cannot write {path}: {err.strerror or err}") from err
     return path
+
+
+def add_identification_to_log(log_path: Path, identification: Any) -> None:
+    """Put the identification on the log's ``/identification`` topic (the log is finished
+    before the identifier runs; the file is rewritten and replaced atomically)."""
+    try:
+        append_result(log_path, "/identification", identification.to_dict(str(log_path)))
+    except (LogFormatError, ValueError) as err:
+        raise OutputError(f"cannot add the identification to {log_path}: {err}") from err
+
+
+def write_run_report(out_dir: Path, recording: Recording, identification: Any | None,
+                     config: dict[str, Any], source_file: str, files: list[Path]) -> Path | None:
+    """Write ``DIR/report.html`` (Bode and time plots) and return its path.
+
+    The report is a view of results already written: if drawing it fails, the run is
+    not failed for it — a warning says why and None is returned.
+    """
+    from .report import write_report
+
+    path = Path(out_dir) / REPORT_NAME
+    try:
+        return write_report(path, recording, identification, config=config, source_file=source_file,
+                            files=[*files, path])
+    except OSError as err:
+        raise OutputError(f"cannot write {path}: {err.strerror or err}") from err
+    except Exception as err:  # noqa: BLE001 - a plotting failure must not cost the commissioning result
+        warnings.warn(f"report.html not written: {type(err).__name__}: {err}", stacklevel=2)
+        return None
 
 
 def _safe_stop(drive: Drive) -> str | None:
@@ -119,6 +153,11 @@ class Sequencer:
         if self.identify is not None:
             identification = self.identify(recording)
             files.append(write_result(self.out_dir, identification, str(log_path)))
+            add_identification_to_log(log_path, identification)
+        report = write_run_report(self.out_dir, recording, identification, config_to_dict(self.config),
+                                  str(log_path), files)
+        if report is not None:
+            files.append(report)
         return RunOutcome(self.out_dir, log_path, recording, waveform, envelope, identification, files)
 
     def measure_backlash(self) -> tuple[Recording, ReversalCheck, Path]:
@@ -172,7 +211,7 @@ class Sequencer:
 
     def _write_log(self, log_path: Path, recording: Recording) -> None:
         try:
-            write_recording(log_path, recording, config=config_to_dict(self.config))
+            write_recording(log_path, recording, config=config_to_dict(self.config), plot_every=PLOT_EVERY)
         except OSError as err:
             raise OutputError(f"cannot write {log_path}: {err.strerror or err}") from err
 
