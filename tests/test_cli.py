@@ -170,3 +170,32 @@ def test_identification_bad_input_is_one_line_exit_6(good_csv, tmp_path, capsys,
         (tmp_path / "c.yaml").write_text(config)
         argv += ["--config", str(tmp_path / "c.yaml")]
     assert fragment in _one_line_error(argv, capsys, 6)
+
+
+def test_apply_is_refused_before_the_axis_moves_when_the_drive_has_no_parameter_map(tmp_path, capsys):
+    err = _one_line_error(["--sim", "--apply", "--yes", "--out", str(tmp_path / "o")], capsys, 2)
+    assert "no parameter map for --apply" in err
+    assert not (tmp_path / "o" / "run.mcap").exists()
+
+
+def test_apply_then_restore_over_canopen(tmp_path, capsys):
+    """--apply writes the verified settings (old values logged in run.mcap), --restore-from puts them back."""
+    from commission.mcaplog import read_results
+
+    capsys.readouterr()
+    run = tmp_path / "run"
+    assert main(["--sim", "--sim-link", "canopen", "--drive", "sim", "--apply", "--yes", "--json",
+                 "--out", str(run)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["apply"]["applied"] and doc["controller"]["verification"]["ready"]
+    written = doc["apply"]["written"]
+    assert written["velocity_kp"] == pytest.approx(doc["controller"]["velocity_loop"]["gain"], rel=1e-6)
+    events = read_results(run / "run.mcap")["/parameters"]
+    old = {v["name"]: v["value"] for v in events[0]["values"]}
+    assert events[0]["event"] == "old_values" and old["velocity_kp"] == pytest.approx(0.12)
+    assert (run / "controller-sim.yaml").is_file()
+    assert main(["--sim", "--sim-link", "canopen", "--drive", "sim", "--restore-from", str(run / "run.mcap"),
+                 "--yes", "--json", "--out", str(tmp_path / "restore")]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["restore"]["applied"] and doc["restore"]["written"] == pytest.approx(old)
+    assert read_results(tmp_path / "restore" / "restore.mcap")["/parameters"][0]["event"] == "old_values"

@@ -34,6 +34,9 @@ modes:
 outputs (in --out DIR, default ./commissioning/<date-time>/):
   run.mcap       every sample sent and measured, the config and the drive's identity
   result.json    the identified two-mass model, its modes and the backlash (SI units)
+  controller.json          velocity/position loop, filters, notch, feedforward, backlash compensation,
+                           margins, closed-loop verification and `ready`
+  controller-<drive>.yaml  the same through the drive's parameter map (with --drive / a drive description)
   report.html    self-contained report: Bode and time plots, the backlash search, metadata
   backlash-check.mcap   the velocity-reversal experiment (with --measure-backlash)
 
@@ -91,7 +94,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --sim: drive the simulated drive directly (default), or as a CANopen node on an "
         "in-process python-can virtual bus (the whole CANopen path, every frame on the bus)",
     )
-    run.add_argument("--no-identify", action="store_true", help="stop after the log (no result.json)")
+    run.add_argument("--no-identify", action="store_true", help="stop after the log (no result.json, no tuning)")
+    tune = p.add_argument_group("controller settings")
+    tune.add_argument("--preset", choices=["soft", "standard", "stiff"],
+                      help="tuning target: soft (PM 60°, GM 12 dB), standard (45°, 8 dB), stiff; overrides tuning.preset")
+    tune.add_argument("--no-tune", action="store_true", help="identify only: no controller.json")
+    tune.add_argument("--apply", action="store_true",
+                      help="write the settings to the drive: shows old → new, asks (or --yes), reads back; "
+                      "refused when the settings are not ready or a value was clamped to its range")
+    tune.add_argument("--yes", action="store_true", help="do not ask before writing parameters")
+    tune.add_argument("--store", action="store_true",
+                      help="after --apply / --restore-from, store the parameters to non-volatile memory (0x1010)")
+    tune.add_argument("--restore-from", metavar="LOG", type=Path,
+                      help="no experiment: write back the parameter values logged before an earlier --apply "
+                      "(the run.mcap of that run)")
     run.add_argument("--seed", type=int, help="seed of the simulated plant's noise (overrides sim.seed)")
     run.add_argument(
         "--measure-backlash", action="store_true",
@@ -235,16 +251,23 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
         except OSError as err:
             raise OutputError(f"cannot create output folder {out_dir}: {err.strerror or err}") from err
         identification = None
+        tuning = None
+        recorded = _recorded_config(args.replay, config)
         if identify is not None:
-            from .sequencer import write_result
+            from .sequencer import tune_and_export, write_result
 
             identification = identify(recording)
             result["identification"] = identification.to_dict(str(args.replay))
             result["files"].append(str(write_result(out_dir, identification, str(args.replay))))
+            if not args.no_tune:
+                tuning = tune_and_export(out_dir, identification, _tuning_options(config, args), _description(args),
+                                         _simulated_plant(recorded, recording))
+                result["controller"] = tuning.controller
+                result["files"] += [str(f) for f in tuning.files]
         from .sequencer import write_run_report
 
-        report = write_run_report(out_dir, recording, identification, _recorded_config(args.replay, config),
-                                  str(args.replay), [Path(f) for f in result["files"]])
+        report = write_run_report(out_dir, recording, identification, recorded,
+                                  str(args.replay), [Path(f) for f in result["files"]], tuning)
         if report is not None:
             result["files"].append(str(report))
         term.summary(f"replay of {args.replay}", _rows(result))
@@ -271,12 +294,41 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
         sim=args.sim, port=args.port, interface=args.interface, protocol=args.protocol,
         sim_plant=sim_plant if args.sim else None, sim_link=args.sim_link, **link_options,
     )
+    if args.restore_from is not None:
+        with drive:
+            return _restore(args, drive, out_dir, term, result)
+    if args.apply:  # refuse before anything moves, not after the experiment
+        from .exceptions import ConfigError
+
+        problem = None
+        if args.no_identify or args.no_tune:
+            problem = "--apply needs controller settings: do not combine it with --no-identify or --no-tune"
+        elif getattr(drive, "description", None) is None:
+            problem = (f"the {drive.info.backend} drive has no parameter map for --apply: use a drive with a "
+                       "description (e.g. --sim --sim-link canopen, or --drive NAME)")
+        elif args.json and not args.yes:
+            problem = "--apply with --json needs --yes (there is no one to ask)"
+        if problem is not None:
+            drive.close()
+            raise ConfigError(problem)
+    if not args.sim and not args.no_tune and config.tuning.current_loop_bandwidth_hz is None:
+        warnings.warn("tuning assumes an ideal current loop: set tuning.current_loop_bandwidth_hz to the drive's "
+                      "for margins that hold on the real axis", stacklevel=1)
+    config = config.model_copy(update={"tuning": _tuning_options(config, args)})
+    true_plant = None
+    if args.sim:
+        from .drive.sim import plant_from_options
+
+        true_plant = plant_from_options(sim_plant)
     with drive:
         term.say(f"drive: {drive.info.vendor} {drive.info.product} ({drive.info.backend})")
-        sequencer = Sequencer(config, drive, out_dir, progress=term.progress, identify=identify)
+        sequencer = Sequencer(config, drive, out_dir, progress=term.progress, identify=identify,
+                              tune=not args.no_tune, true_plant=true_plant)
         outcome = sequencer.run()
         check = sequencer.measure_backlash() if args.measure_backlash else None
         term.close()
+        if args.apply:
+            result["apply"] = _apply(args, drive, outcome, term)
     if check is not None:
         _, reversals, check_log = check
         result["backlash_check"] = {
@@ -294,11 +346,94 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     }
     if outcome.identification is not None:
         result["identification"] = outcome.identification.to_dict(str(outcome.log_path))
+    if outcome.tuning is not None:
+        result["controller"] = outcome.tuning.controller
     result["files"] = [str(f) for f in outcome.files]
     if check is not None:
         result["files"].append(str(check[2]))
     term.summary("commissioning run", _rows(result))
     _details(term, result)
+    return result
+
+
+def _tuning_options(config: Config, args: argparse.Namespace) -> Any:
+    options = config.tuning
+    if args.preset is not None:
+        options = options.model_copy(update={"preset": args.preset})
+    return options
+
+
+def _description(args: argparse.Namespace) -> Any | None:
+    """The drive description named by --drive (for controller-<drive>.yaml on replays)."""
+    if not args.drive:
+        return None
+    from .drive.description import load_description
+
+    return load_description(args.drive)
+
+
+def _simulated_plant(config: dict[str, Any], recording: Recording) -> Any | None:
+    """The simulator's plant when the replayed run came from the simulated drive, else None."""
+    from .report import true_plant_from_config
+
+    if true_plant_from_config(config, recording) is None:
+        return None
+    from .drive.sim import plant_from_options
+
+    return plant_from_options(dict(config["sim"]))
+
+
+def _confirm(term: _Terminal) -> Any:
+    def ask(question: str) -> bool:
+        if not sys.stdin.isatty():
+            term.say("not a terminal: pass --yes to write without asking")
+            return False
+        return input(f"{question} [y/N] ").strip().lower() in ("y", "yes")
+
+    return ask
+
+
+def _apply(args: argparse.Namespace, drive: Any, outcome: Any, term: _Terminal) -> dict[str, Any]:
+    """--apply: write the verified settings through the drive's parameter map, logged in run.mcap."""
+    from .mcaplog import append_result
+    from .tuning import TuningError, apply, drive_parameters
+
+    assert outcome.tuning is not None  # checked before the run
+    verification = outcome.tuning.verification
+    if not verification.ready:
+        raise TuningError("settings are not ready, nothing written: " + "; ".join(verification.reasons))
+    report = apply(drive, drive_parameters(outcome.tuning.settings, drive.description), yes=args.yes,
+                   confirm=_confirm(term), store=args.store,
+                   log=lambda topic, payload: append_result(outcome.log_path, topic, payload), echo=term.say)
+    return {"applied": report.applied, "written": report.written, "stored": report.stored}
+
+
+def _restore(args: argparse.Namespace, drive: Any, out_dir: Path, term: _Terminal,
+             result: dict[str, Any]) -> dict[str, Any]:
+    """--restore-from LOG: write back the values logged before an earlier --apply (logged again)."""
+    from .exceptions import ConfigError
+    from .mcaplog import ResultLog
+    from .tuning import apply, restore_values
+
+    description = getattr(drive, "description", None)
+    if description is None:
+        raise ConfigError(f"the {drive.info.backend} drive has no parameter map to restore through")
+    if args.json and not args.yes:
+        raise ConfigError("--restore-from with --json needs --yes (there is no one to ask)")
+    values = restore_values(args.restore_from, description)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"cannot create output folder {out_dir}: {err.strerror or err}") from err
+    log_path = out_dir / "restore.mcap"
+    with ResultLog(log_path, metadata={"restored_from": str(args.restore_from)}) as log:
+        report = apply(drive, values, yes=args.yes, confirm=_confirm(term), store=args.store,
+                       log=log.add, echo=term.say)
+    result.update(source=drive.info.backend, files=[str(log_path)],
+                  restore={"from": str(args.restore_from), "applied": report.applied, "written": report.written,
+                           "stored": report.stored})
+    term.say(f"restored {len(report.written)} parameters from {args.restore_from}" if report.applied
+             else "nothing restored")
     return result
 
 
@@ -352,6 +487,19 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
             ("friction", f"B_m {tm['B_m']:.3g}  B_l {tm['B_l']:.3g} N·m·s/rad"),
             ("resonance", f"{md['f_resonance_hz']:.2f} Hz  ζ {md['zeta_resonance']:.3f}"),
             ("anti-resonance", f"{md['f_antiresonance_hz']:.2f} Hz  ζ {md['zeta_antiresonance']:.3f}"),
+        ]
+    ctl = result.get("controller")
+    if ctl is not None:
+        vl, m, ver = ctl["velocity_loop"], ctl["margins"], ctl["verification"]
+        notch = ", ".join(f"{n['frequency_hz']:.1f} Hz Q {n['q']:.2g}" for n in ctl.get("notch", [])) or "none"
+        bc = ctl.get("backlash_compensation", {})
+        rows += [
+            ("velocity loop", f"gain {vl['gain']:.4g} N·m·s/rad  Ti {vl['integral_time_s'] * 1e3:.3g} ms  "
+                              f"bandwidth {vl['bandwidth_hz']:.0f} Hz"),
+            ("position loop", f"{ctl['position_loop']['gain_per_s']:.4g} 1/s"),
+            ("notch / backlash comp.", f"{notch} / {bc.get('amount_rad', 0.0) * 1e3:.3g} mrad"),
+            ("margins", f"PM {m['phase_margin_deg']:.1f}°  GM {m['gain_margin_db']:.1f} dB"),
+            ("controller ready", "yes" if ver.get("ready") else "NO: " + "; ".join(ver.get("reasons", []))),
         ]
     if "backlash_check" in result:
         bc = result["backlash_check"]

@@ -9,6 +9,7 @@ the default below (which is the paper's experiment with the corrected chirp)::
                   planning_inertia_kg_m2, planning_damping_nm_s_per_rad}
     backlash_check: {amplitude_rad_s, frequency_hz, duration_s}
     identification: {...}          options of the identifier (commission.ident)
+    tuning:      {...}             options of the controller design (commission.tuning)
     sim:         {...}             the simulated plant (sim_drive.plant.PlantParameters)
 
 Unknown keys are errors, so a typo never silently falls back to a default.
@@ -26,6 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from .exceptions import ConfigError
 from .ident.hybrid import IdentificationOptions
+from .tuning import TuningOptions
 
 
 class ChirpForm(str, Enum):
@@ -106,6 +108,7 @@ class Config(_Section):
     safety: SafetyConfig = SafetyConfig()
     backlash_check: BacklashCheckConfig = BacklashCheckConfig()
     identification: IdentificationOptions = IdentificationOptions()
+    tuning: TuningOptions = TuningOptions()
     sim: dict[str, Any] = Field(
         default_factory=dict,
         description="simulated plant parameters (sim_drive.plant.PlantParameters), used with --sim",

@@ -1014,3 +1014,55 @@ def read_config(path: str | os.PathLike[str]) -> dict[str, Any]:
         return {key: json.loads(value) for key, value in stored.items()}
     except ValueError as err:
         raise LogFormatError(f"{p}: invalid 'config' metadata ({err})") from err
+
+
+class ResultLog:
+    """An MCAP log of JSON results only (no samples), written message by message.
+
+    For actions that are not experiments, e.g. ``--restore-from``: every message is on disk
+    (its chunk closed, the file flushed) before :meth:`add` returns, so a crash keeps what was
+    logged; readable with :func:`read_results`.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, metadata: Mapping[str, str] | None = None) -> None:
+        self._path = os.fspath(path)
+        self._file = open(self._path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = Writer(self._file, chunk_size=2**62, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library=f"drive-commission/{TOOL_VERSION}; {LIBRARY_IDENTIFIER}")
+        self._writer.add_metadata("results", {"tool_version": TOOL_VERSION, **dict(metadata or {})})
+        self._channels: dict[str, int] = {}
+        self._closed = False
+
+    def add(self, topic: str, payload: Mapping[str, Any]) -> None:
+        """Write ``payload`` as one JSON message on ``topic``, now."""
+        if self._closed:
+            raise ValueError("the result log is closed")
+        if not (isinstance(topic, str) and topic.startswith("/") and len(topic) > 1):
+            raise ValueError(f"topic must start with '/', got {topic!r}")
+        data = _dumps(dict(payload)).encode()
+        channel_id = self._channels.get(topic)
+        if channel_id is None:
+            schema_id = self._writer.register_schema(
+                name=f"commission{topic.replace('/', '.')}", encoding=SchemaEncoding.JSONSchema,
+                data=json.dumps(_RESULT_SCHEMA).encode(),
+            )
+            channel_id = self._channels[topic] = self._writer.register_channel(topic, MessageEncoding.JSON, schema_id)
+        stamp = time.time_ns()
+        self._writer.add_message(channel_id, log_time=stamp, data=data, publish_time=stamp)
+        self._writer.flush()  # type: ignore[attr-defined]
+        self._file.flush()
+
+    def close(self) -> None:
+        """Finish the file (safe to call twice)."""
+        if not self._closed:
+            self._closed = True
+            try:
+                self._writer.finish()
+            finally:
+                self._file.close()
+
+    def __enter__(self) -> ResultLog:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

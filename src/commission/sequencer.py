@@ -43,6 +43,38 @@ PLOT_EVERY = 8
 
 
 @dataclass(frozen=True)
+class TuningOutcome:
+    """Controller settings from the identified model, their closed-loop verification, and files."""
+
+    settings: Any
+    """commission.tuning.ControllerSettings"""
+    verification: Any
+    """commission.tuning.Verification (on the true plant for simulated runs)"""
+    controller: dict[str, Any]
+    """controller.json's document"""
+    files: list[Path]
+
+
+def tune_and_export(out_dir: Path, identification: Any, options: Any, description: Any | None,
+                    true_plant: Any | None = None) -> TuningOutcome:
+    """Design the controller from the identification, verify it in closed loop and write
+    ``controller.json`` (and ``controller-<drive>.yaml`` with a drive description).
+
+    :param true_plant: the simulator's PlantParameters on simulated runs: the settings are then
+        verified on the true machine; otherwise on the identified model with its backlash.
+    """
+    from .tuning import controller_json, design, verify, write_controller_files
+
+    settings = design(identification, options)
+    if true_plant is not None:
+        verification = verify(settings, true_plant, options)
+    else:
+        verification = verify(settings, identification.parameters, options, epsilon_rad=identification.epsilon_rad)
+    files = write_controller_files(out_dir, settings, verification, description)
+    return TuningOutcome(settings, verification, controller_json(settings, verification), files)
+
+
+@dataclass(frozen=True)
 class RunOutcome:
     """What a commissioning run produced."""
 
@@ -53,6 +85,7 @@ class RunOutcome:
     envelope: EnvelopeCheck
     identification: Any | None = None
     files: list[Path] = field(default_factory=list)
+    tuning: TuningOutcome | None = None
 
 
 def write_result(out_dir: Path, identification: Any, source_file: str | None) -> Path:
@@ -75,7 +108,8 @@ def add_identification_to_log(log_path: Path, identification: Any) -> None:
 
 
 def write_run_report(out_dir: Path, recording: Recording, identification: Any | None,
-                     config: dict[str, Any], source_file: str, files: list[Path]) -> Path | None:
+                     config: dict[str, Any], source_file: str, files: list[Path],
+                     tuning: TuningOutcome | None = None) -> Path | None:
     """Write ``DIR/report.html`` (Bode and time plots) and return its path.
 
     The report is a view of results already written: if drawing it fails, the run is
@@ -86,7 +120,7 @@ def write_run_report(out_dir: Path, recording: Recording, identification: Any | 
     path = Path(out_dir) / REPORT_NAME
     try:
         return write_report(path, recording, identification, config=config, source_file=source_file,
-                            files=[*files, path])
+                            files=[*files, path], tuning=None if tuning is None else tuning.controller)
     except OSError as err:
         raise OutputError(f"cannot write {path}: {err.strerror or err}") from err
     except Exception as err:  # noqa: BLE001 - a plotting failure must not cost the commissioning result
@@ -112,6 +146,8 @@ class Sequencer:
     :param out_dir: folder for run.mcap and later outputs (created).
     :param progress: called during the excitation with ("excitation", samples done, total).
     :param identify: the identifier seam; None stops after the log.
+    :param tune: design and verify controller settings after the identification.
+    :param true_plant: the simulator's plant, to verify the settings on the true machine.
     """
 
     def __init__(
@@ -122,12 +158,16 @@ class Sequencer:
         *,
         progress: Progress | None = None,
         identify: Identifier | None = None,
+        tune: bool = True,
+        true_plant: Any | None = None,
     ) -> None:
         self.config = config
         self.drive = drive
         self.out_dir = Path(out_dir)
         self.progress = progress
         self.identify = identify
+        self.tune = tune
+        self.true_plant = true_plant
 
     def _check_drive(self) -> None:
         state = self.drive.state
@@ -150,15 +190,20 @@ class Sequencer:
         recording = self._experiment(waveform, Mode.CYCLIC_SYNC_TORQUE, log_path)
         files = [log_path]
         identification = None
+        tuning = None
         if self.identify is not None:
             identification = self.identify(recording)
             files.append(write_result(self.out_dir, identification, str(log_path)))
             add_identification_to_log(log_path, identification)
+            if self.tune:
+                tuning = tune_and_export(self.out_dir, identification, self.config.tuning,
+                                         getattr(self.drive, "description", None), self.true_plant)
+                files += tuning.files
         report = write_run_report(self.out_dir, recording, identification, config_to_dict(self.config),
-                                  str(log_path), files)
+                                  str(log_path), files, tuning)
         if report is not None:
             files.append(report)
-        return RunOutcome(self.out_dir, log_path, recording, waveform, envelope, identification, files)
+        return RunOutcome(self.out_dir, log_path, recording, waveform, envelope, identification, files, tuning)
 
     def measure_backlash(self) -> tuple[Recording, ReversalCheck, Path]:
         """The backlash check of paper §4.2: velocity reversals, needs a load encoder."""

@@ -1,0 +1,228 @@
+"""Controller design, closed-loop verification and export (issue #6).
+
+Independent answers used: sim_drive's Plant (its own integrator and PI loop) for the
+closed-loop simulator; python-control's margins vs the design's grid margins; the true
+plant parameters (not the identified ones) for the margins and the closed-loop runs.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import yaml
+
+from commission.drive.description import load_description
+from commission.ident.twomass import REFERENCE_PLANT, TwoMassParameters
+from commission.tuning import (
+    Notch,
+    TuningError,
+    TuningOptions,
+    controller_json,
+    design,
+    drive_parameters,
+    loop_margins,
+    velocity_closed_loop,
+    verify,
+    write_controller_files,
+)
+from commission.tuning.closedloop import simulate_closed_loop
+from commission.tuning.verify import TruePlant, controller_vector
+from sim_drive.plant import Plant, PlantParameters
+
+FS = 8000.0
+J_M = 4.78e-4
+
+
+def _plant(ratio: float, f_r: float, zeta: float, B_l: float | None = None) -> TwoMassParameters:
+    """bench/bench_identify.py's parameterisation of the spread of plants."""
+    J_l = ratio * J_M
+    w = 2 * math.pi * f_r
+    return TwoMassParameters(J_m=J_M, J_l=J_l, B_m=0.84e-2, B_l=B_l if B_l is not None else 0.53e-2 * math.sqrt(ratio / 0.4),
+                             K=w * w * J_l / (1 + ratio), D=2 * zeta * w / (1 / J_M + 1 / J_l))
+
+
+#: the design input: the reference plant as an identification may give it (±1–2 % errors)
+IDENTIFIED = TwoMassParameters(J_m=4.78e-4 * 1.01, J_l=1.92e-4 * 0.98, B_m=0.84e-2 * 1.05, B_l=0.53e-2 * 0.9,
+                               K=23.10 * 0.985, D=1.54e-2 * 1.1)
+EPS_ID = math.radians(0.395)
+_cache: dict[str, object] = {}
+
+
+def _reference():
+    if "ref" not in _cache:
+        s = design(IDENTIFIED, TuningOptions(), epsilon_rad=EPS_ID)
+        _cache["ref"] = (s, verify(s, PlantParameters()))
+    return _cache["ref"]
+
+
+def test_closed_loop_simulator_matches_the_plant_pi_loop() -> None:
+    """PI only (the drive's velocity mode): the compiled loop against Plant.run_velocity."""
+    pp = PlantParameters()
+    n = 4000
+    v_ref = np.zeros(n)
+    v_ref[200:] = 3.0
+    v_ref[2200:] = -2.0
+    kp, ki, lim = 0.12, 4.0, 1.9
+    ref = Plant(pp, FS).run_velocity(v_ref, kp, ki, lim)
+    from commission.tuning.design import BacklashCompensation, ControllerSettings, LoopMargins, Preset
+
+    m = LoopMargins(math.inf, math.inf, math.nan, math.nan, 1.0, True)
+    s = ControllerSettings(FS, pp.J_m, pp.J_l, kp, kp / ki, 0.0, 1.0, 0.0, (), 0.0, 0.0,
+                           BacklashCompensation(0.0, 0.01), m, None, 45.0, 8.0, Preset.STANDARD)
+    tp = TruePlant.from_plant_parameters(pp)
+    out = simulate_closed_loop(tp.vector(), controller_vector(s, position_mode=False, torque_limit_nm=lim),
+                               tp.substeps(1 / FS), 1 / FS, np.zeros(n), v_ref, np.zeros(n))
+    q = 2 * math.pi / 2**24
+    # same integrator scheme, same quantiser: positions agree to the encoder step
+    assert np.max(np.abs(out[0] - ref.motor_position)) <= 1.01 * q
+    np.testing.assert_allclose(out[4], ref.torque_ref, atol=kp * q * FS * 1.01)
+    np.testing.assert_allclose(out[5], ref.twist, atol=1e-9)
+
+
+def test_design_margins_python_control_agree_with_the_grid() -> None:
+    s, _ = _reference()
+    from commission.tuning.design import _evaluate, _loop_plants
+
+    loop = _loop_plants(IDENTIFIED, True, TuningOptions())
+    m_grid, mg_grid, _ = _evaluate(loop, s.velocity_gain, s.velocity_integral_time_s,
+                                   s.torque_filter_time_constant_s, s.notches)
+    assert s.margins.phase_margin_deg == pytest.approx(m_grid.phase_margin_deg, abs=0.3)
+    assert s.margins.gain_margin_db == pytest.approx(m_grid.gain_margin_db, abs=0.1)
+    assert s.margins_gap is not None and mg_grid is not None
+    assert s.margins_gap.phase_margin_deg == pytest.approx(mg_grid.phase_margin_deg, abs=0.3)
+
+
+def test_reference_plant_meets_the_margins_on_the_true_plant() -> None:
+    s, v = _reference()
+    assert s.meets_margins
+    for m in (v.margins, v.margins_gap):
+        assert m is not None and m.stable
+        assert m.phase_margin_deg >= 45.0
+        assert m.gain_margin_db >= 8.0
+    assert v.ready, v.reasons
+    assert s.velocity_bandwidth_hz > 100.0
+    # the designed gain is the highest: 15 % more breaks a margin on the identified model
+    hot = replace(s, velocity_gain=1.15 * s.velocity_gain)
+    m = loop_margins(hot, IDENTIFIED)
+    assert m.phase_margin_deg < 45.0 + TuningOptions().design_guard_deg or m.gain_margin_db < 9.0
+
+
+def test_backlash_compensation_reduces_the_load_error_after_reversals() -> None:
+    s, v = _reference()
+    assert s.backlash.enabled
+    assert s.backlash.amount_rad == pytest.approx(2 * EPS_ID)
+    on = v.runs["proposed"]["reversal"]
+    off = v.runs["without_backlash_compensation"]["reversal"]
+    assert on.lost_motion_rad < 0.3 * off.lost_motion_rad
+    assert on.load_error_rad < 0.5 * off.load_error_rad
+    assert on.limit_cycle_amplitude <= off.limit_cycle_amplitude + 1e-6
+    # without backlash on the plant, the same settings lose nothing
+    v0 = verify(s.without_backlash_compensation(), PlantParameters(epsilon_deg=0.0), scenarios=("reversal",))
+    assert v0.runs["proposed"]["reversal"].lost_motion_rad < 1e-4
+
+
+def test_no_compensation_without_backlash() -> None:
+    s = design(REFERENCE_PLANT, TuningOptions(), epsilon_rad=0.0)
+    assert not s.backlash.enabled and s.margins_gap is None
+
+
+# a plant whose resonance lies above the velocity loop of a drive with a 1 kHz current loop
+# and one sample of computation delay: J_l/J_m = 5, 300 Hz, ζ = 0.05
+NOTCH_PLANT = _plant(5.0, 300.0, 0.05)
+REAL_DRIVE = {"current_loop_bandwidth_hz": 1000.0, "computation_delay_samples": 1}
+
+
+def test_notch_removes_the_resonance_peak() -> None:
+    opt = TuningOptions(**REAL_DRIVE)
+    s = design(NOTCH_PLANT, opt, epsilon_rad=math.radians(0.3))
+    assert len(s.notches) == 1
+    assert s.notches[0].frequency_hz == pytest.approx(300.0, rel=0.01)
+    truth = PlantParameters(**NOTCH_PLANT.as_dict(), epsilon_deg=0.3, current_loop_bandwidth_hz=1000.0)
+    f = np.linspace(200.0, 420.0, 2000)
+    with_notch = 20 * np.log10(np.abs(velocity_closed_loop(s, NOTCH_PLANT, f)))
+    without = 20 * np.log10(np.abs(velocity_closed_loop(s, NOTCH_PLANT, f, notches=False)))
+    assert np.max(with_notch) < 1.0  # no peak left around the resonance
+    assert np.max(without) > np.max(with_notch) + 3.0
+    v = verify(s, truth, opt, scenarios=("velocity_step",))
+    assert v.margins.phase_margin_deg >= 45 and v.margins.gain_margin_db >= 8
+    assert not loop_margins(s, NOTCH_PLANT, notches=False).meets(45.0, 8.0)  # the same gains need it
+
+
+def test_reference_plant_needs_no_notch_and_says_why() -> None:
+    s, _ = _reference()
+    assert s.notches == ()
+    assert any("no notch" in n for n in s.notes)
+
+
+@pytest.mark.parametrize("preset, pm, gm", [("soft", 60, 12), ("stiff", 40, 6)])
+def test_presets(preset: str, pm: float, gm: float) -> None:
+    s = design(IDENTIFIED, TuningOptions(preset=preset), epsilon_rad=EPS_ID)
+    assert s.margins.phase_margin_deg >= pm and s.margins.gain_margin_db >= gm
+    std, _ = _reference()
+    assert (s.velocity_gain < std.velocity_gain) == (preset == "soft")
+
+
+def test_unphysical_model_is_refused() -> None:
+    with pytest.raises(TuningError):
+        design(replace(REFERENCE_PLANT, K=-1.0), TuningOptions())
+
+
+def test_controller_files(tmp_path) -> None:
+    s, v = _reference()
+    paths = write_controller_files(tmp_path, s, v, load_description("yaskawa-sigma7"))
+    doc = json.loads((tmp_path / "controller.json").read_text())
+    assert doc["velocity_loop"]["gain"] == pytest.approx(s.velocity_gain)
+    for key in ("integral_time_s", "bandwidth_hz"):
+        assert doc["velocity_loop"][key] > 0
+    assert doc["position_loop"]["gain_per_s"] > 0
+    assert doc["notch"] == []
+    assert doc["backlash_compensation"]["amount_rad"] == pytest.approx(2 * EPS_ID)
+    assert doc["backlash_compensation"]["time_constant_s"] > 0
+    assert doc["margins"]["phase_margin_deg"] >= 45 and doc["margins"]["gain_margin_db"] >= 8
+    assert doc["verification"]["ready"] is True
+    assert "runs" in doc["verification"]
+    y = yaml.safe_load((tmp_path / "controller-yaskawa-sigma7.yaml").read_text())
+    by = {p["name"]: p for p in y["parameters"]}
+    # Pn100 is K_v in Hz with the inertia ratio, Pn101 in ms, Pn103 in %
+    assert by["speed_loop_gain"]["value"] == pytest.approx(s.velocity_loop_gain_hz, abs=0.05)
+    assert by["speed_loop_integral_time"]["value"] == pytest.approx(1e3 * s.velocity_integral_time_s, abs=0.005)
+    assert by["inertia_ratio"]["value"] == pytest.approx(100 * s.inertia_ratio, abs=0.5)
+    assert by["backlash_compensation"]["value"] == pytest.approx(2 * EPS_ID * 2**24 / (2 * math.pi), abs=0.05)
+    assert len(paths) == 2
+
+
+def test_clamped_values_are_flagged() -> None:
+    s, _ = _reference()
+    low = replace(s, notches=(Notch(frequency_hz=20.0, q=1.0, depth=0.2),))
+    params = {p.name: p for p in drive_parameters(low, load_description("yaskawa-sigma7"))}
+    assert params["notch1_frequency"].clamped and params["notch1_frequency"].value == 50.0
+    assert not params["speed_loop_gain"].clamped
+    doc = controller_json(low)
+    assert doc["notch"][0]["frequency_hz"] == 20.0
+
+
+def test_identified_reference_plant_end_to_end() -> None:
+    """Chirp on the simulated reference plant → hybrid identification → design → verification
+    on the TRUE plant: the margins hold there too, and the backlash compensation helps."""
+    from commission.config import ExcitationConfig
+    from commission.excitation import chirp
+    from commission.ident.hybrid import identify
+    from commission.recording import Recording
+
+    truth = PlantParameters()
+    r = Plant(truth.model_copy(update={"torque_noise_nm": 1e-4, "seed": 11}), FS).run_torque(
+        chirp(ExcitationConfig()).samples)
+    ident = identify(Recording.uniform(FS, r.torque_ref, r.motor_velocity, motor_position=r.motor_position))
+    s = design(ident, TuningOptions())
+    v = verify(s, truth)
+    assert v.ready, v.reasons
+    assert v.margins.phase_margin_deg >= 45.0 and v.margins.gain_margin_db >= 8.0
+    assert v.margins_gap is not None and v.margins_gap.phase_margin_deg >= 45.0
+    assert s.backlash.amount_rad == pytest.approx(2 * truth.epsilon_rad, rel=0.05)
+    on = v.runs["proposed"]["reversal"]
+    off = v.runs["without_backlash_compensation"]["reversal"]
+    assert on.lost_motion_rad < 0.5 * off.lost_motion_rad
