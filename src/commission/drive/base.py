@@ -71,6 +71,47 @@ class Drive(ABC):
         progress: ProgressCallback | None,
     ) -> Recording: ...
 
+    def _await_playback(
+        self,
+        read_played: Callable[[], int],
+        total: int,
+        rate_hz: float,
+        progress: ProgressCallback | None,
+        *,
+        poll_s: float,
+        stall_s: float,
+        on_poll: Callable[[int], None] | None = None,
+    ) -> None:
+        """Poll a drive-side waveform player until it has played ``total`` samples.
+
+        Raises DriveFault when the drive faults, DriveError when it leaves Operation enabled,
+        DriveTimeout when the played count stops moving for longer than the run plus ``stall_s``.
+        ``on_poll(played)`` runs first on every poll (link and EMCY checks of a backend).
+        """
+        last_progress, last_change = -1, time.monotonic()
+        stall_limit = total / rate_hz + stall_s
+        while True:
+            time.sleep(poll_s)
+            played = int(read_played())
+            if on_poll is not None:
+                on_poll(played)
+            if progress is not None:
+                progress(played, total)
+            if played >= total:
+                return
+            state = decode_statusword(self._read_statusword())
+            if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                if on_poll is not None:
+                    on_poll(played)  # a fault message (EMCY) may have arrived meanwhile: it names the cause
+                raise DriveFault(f"{self._fault_message()} after {played / rate_hz:.3f} s of {total / rate_hz:.3g} s")
+            if state is not State.OPERATION_ENABLED:
+                raise DriveError(f"drive left 'operation enabled' during the run: it is '{state.value}'")
+            now = time.monotonic()
+            if played != last_progress:
+                last_progress, last_change = played, now
+            elif now - last_change > stall_limit:
+                raise DriveTimeout(f"the drive's waveform player made no progress for {now - last_change:.1f} s")
+
     def _recorded_so_far(self) -> Recording | None:
         """The part of the last excitation recorded before an abort (backends override)."""
         return None

@@ -545,25 +545,8 @@ class ModbusDrive(Drive):
                                              self.stats["bytes"] - bytes0, time.perf_counter() - t0))
         self._start_time = datetime.now(timezone.utc)
         self._write(tr.start, tr.start_value, "the start trigger")
-        last_progress, last_change = -1, time.monotonic()
-        stall_limit = total / rate + STALL_S
-        while True:
-            time.sleep(POLL_S)
-            played = int(self._read(tr.progress, "the progress"))
-            if progress is not None:
-                progress(played, total)
-            if played >= total:
-                break
-            state = decode_statusword(self._read_statusword())
-            if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-                raise DriveFault(f"{self._fault_message()} after {played / rate:.3f} s of {total / rate:.3g} s")
-            if state is not State.OPERATION_ENABLED:
-                raise DriveError(f"drive left 'operation enabled' during the run: it is '{state.value}'")
-            now = time.monotonic()
-            if played != last_progress:
-                last_progress, last_change = played, now
-            elif now - last_change > stall_limit:
-                raise DriveTimeout(f"the drive's waveform player made no progress for {now - last_change:.1f} s")
+        self._await_playback(lambda: int(self._read(tr.progress, "the progress")), total, rate, progress,
+                             poll_s=POLL_S, stall_s=STALL_S)
         rec = self._upload_trace()
         if rec is None or len(rec) != total:
             raise DriveError(f"trace holds {0 if rec is None else len(rec)} samples, expected {total}")

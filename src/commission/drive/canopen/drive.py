@@ -397,28 +397,12 @@ class CanopenDrive(Drive):
         self._run_total = total
         self._start_time = datetime.now(timezone.utc)
         self.sdo.write(trace.start, trace.start_value)
-        last_progress, last_change = -1, time.monotonic()
-        stall_limit = total / rate + STALL_S
-        while True:
-            time.sleep(POLL_S)
-            self._check_link()
-            played = int(self.sdo.read(trace.progress))
-            self._emcy_fault(emcy_mark, played, total, rate)
-            if progress is not None:
-                progress(played, total)
-            if played >= total:
-                break
-            state = decode_statusword(self._read_statusword())
-            if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-                self._emcy_fault(emcy_mark, played, total, rate)  # the EMCY may have arrived meanwhile
-                raise DriveFault(f"{self._fault_message()} after {played / rate:.3f} s of {total / rate:.3g} s")
-            if state is not State.OPERATION_ENABLED:
-                raise DriveError(f"drive left 'operation enabled' during the run: it is '{state.value}'")
-            now = time.monotonic()
-            if played != last_progress:
-                last_progress, last_change = played, now
-            elif now - last_change > stall_limit:
-                raise DriveTimeout(f"the drive's waveform player made no progress for {now - last_change:.1f} s")
+        def read_played() -> int:
+            self._check_link()  # a silent heartbeat is the cause to report, not the SDO timeout after it
+            return int(self.sdo.read(trace.progress))
+
+        self._await_playback(read_played, total, rate, progress, poll_s=POLL_S, stall_s=STALL_S,
+                             on_poll=lambda played: self._emcy_fault(emcy_mark, played, total, rate))
         rec = self._upload_trace()
         if rec is None or len(rec) != total:
             raise DriveError(f"trace holds {0 if rec is None else len(rec)} samples, expected {total}")
