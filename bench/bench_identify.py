@@ -11,8 +11,9 @@ default, and for comparison the full-resolution grid and the Bayesian search).
     python bench/bench_identify.py --quick    # a subset
     python bench/bench_identify.py --no-paper # hybrid only
 
-Unmodelled effects (Coulomb friction 0.01 N·m, 1 kHz current-loop lag) are
-reported as they are: the model has no term for them yet.
+Plants with Coulomb friction (0.01 N·m per side), a 1 kHz current-loop lag, both, and
+lightly damped ones are in the spread; the hybrid method's kept terms (model selection,
+BIC) are printed per plant ("terms": m = motor Coulomb, l = load Coulomb, c = current loop).
 """
 
 from __future__ import annotations
@@ -51,6 +52,8 @@ class Case:
     def params(self) -> TwoMassParameters:
         if self.name.startswith("reference"):
             return TwoMassParameters(J_m=4.78e-4, J_l=1.92e-4, B_m=0.84e-2, B_l=0.53e-2, K=23.10, D=1.54e-2)
+        if self.name.startswith("ref zeta"):  # reference, shaft damping for ζ_r = 0.07
+            return TwoMassParameters(J_m=4.78e-4, J_l=1.92e-4, B_m=0.84e-2, B_l=0.53e-2, K=23.10, D=0.0045)
         J_l = self.ratio * J_M
         w = 2 * math.pi * self.f_r_hz
         K = w * w * J_l / (1 + self.ratio)
@@ -70,13 +73,14 @@ FULL = [
     Case("heavy 40Hz", 0.5, 40, 0.2, 0.90),
     Case("soft heavy 25Hz", 4.0, 25, 0.17, 0.60, B_l=1.5e-2),
     Case("soft heavy 20Hz", 5.0, 20, 0.15, 0.30),
+    Case("ref zeta=0.07 e=0.25", 0.4, 65.4, 0.07, 0.25),
     Case("reference +coulomb", 0.4, 65.4, 0.167, 0.40, coulomb_nm=0.01),
     Case("reference +lag1k", 0.4, 65.4, 0.167, 0.40, lag_hz=1000.0),
     Case("reference +both", 0.4, 65.4, 0.167, 0.40, coulomb_nm=0.01, lag_hz=1000.0),
     Case("soft heavy +both", 4.0, 25, 0.17, 0.60, coulomb_nm=0.01, lag_hz=1000.0, B_l=1.5e-2),
 ]
 QUICK_NAMES = {"reference", "reference eps=0", "stiff light 150Hz", "soft heavy 25Hz",
-               "reference +coulomb", "reference +lag1k"}
+               "reference +coulomb", "reference +lag1k", "ref zeta=0.07 e=0.25"}
 
 
 def record(case: Case) -> Recording:
@@ -123,6 +127,8 @@ def run(case: Case, method: Method, compare: bool) -> dict:
         j = res.stage("joint").detail
         row["dropped"] = j.get("dropped_fraction", 0.0)
         row["ratio"] = j.get("residual_ratio", math.nan)
+        row["terms"] = "".join(c for t, c in (("coulomb_motor", "m"), ("coulomb_load", "l"),
+                                              ("current_loop", "c")) if t in j.get("terms", [])) or "-"
         if compare:
             c = res.stage("search_compare").detail
             row["cmp"] = (c["grid_evaluations"], c["bayes_evaluations"],
@@ -190,7 +196,8 @@ def _print_row(r: dict) -> None:
     f = lambda x: f"{x:7.3f}" if abs(x) < 100 else f"{x:7.0f}"  # noqa: E731
     print(f"{r['case']:<20} {r['method']:<6} {r['eps_true']:6.2f} {r['eps']:8.4f} {r['d_eps']:8.4f} "
           + " ".join(f(r[k]) for k in ("J_m", "J_l", "B_m", "B_l", "K", "D", "fr", "fa"))
-          + f" {r['evals']:5d} {r['wall']:6.1f} " + ",".join(f"{e:.4f}" for e in r["frd_err"]))
+          + f" {r['evals']:5d} {r['wall']:6.1f} {r.get('terms', ''):>5} "
+          + ",".join(f"{e:.4f}" for e in r["frd_err"]))
 
 
 if __name__ == "__main__":

@@ -92,3 +92,24 @@ def test_burst_mask_keeps_gaussian_noise_and_drops_bursts():
     assert not keep[5000:5010].any()
     assert not keep[4992] and not keep[5017]
     assert keep.mean() > 0.99
+
+
+def test_projected_fit_solves_motor_coulomb_and_first_order_lag_linearly():
+    """The motor Coulomb level is a linear column (exact); the lag column gives T_c to first order."""
+    from commission.ident.jointfit import LoadRates, ModelTerms, projected_fit
+
+    tau = chirp(ExcitationConfig()).samples
+    r = Plant(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=EPS_DEG, torque_noise_nm=1e-4,
+                              seed=5, coulomb_motor_nm=0.01, current_loop_bandwidth_hz=1000.0),
+              FS).run_torque(tau)
+    p = prepare_residual(r.torque_ref, FS, motor_position=r.motor_position, cutoff_hz=400.0,
+                         velocity_scale_rad_s=2e-3)
+    rates = LoadRates.of(REFERENCE_PLANT)
+    eps = math.radians(EPS_DEG)
+    tc = 1.0 / (2 * math.pi * 1000.0)
+    exact = projected_fit(p, rates, eps, coulomb_motor=True, lag_s=tc)
+    assert exact.coulomb_motor_nm == pytest.approx(0.01, rel=0.01)
+    assert exact.parameters.J_m == pytest.approx(REFERENCE_PLANT.J_m, rel=1e-3)
+    first_order = projected_fit(p, rates, eps, coulomb_motor=True, lag_linear=True)
+    assert first_order.lag_linear_s == pytest.approx(tc, rel=0.2)
+    assert ModelTerms(current_loop=True).names() == ("current_loop",)

@@ -104,3 +104,75 @@ def test_bad_inputs_raise():
         prepare_residual(np.zeros(100), FS)
     with pytest.raises(IdentificationError):
         prepare_residual(np.zeros(100), FS, motor_velocity=np.zeros(100), cutoff_hz=5000.0)
+
+
+# --------------------------------------------------------------------------- issue 8 terms
+def test_lagged_torque_matches_a_brute_force_integration():
+    """Closed form of the triangle-averaged first-order lag vs a fine explicit integration."""
+    from commission.ident.residual import lagged_torque
+
+    rng = np.random.default_rng(1)
+    u = rng.standard_normal(60)
+    tc = 1.0 / (2 * math.pi * 1000.0)
+    sub = 4000  # sub-steps per sample, exact exponential update of the lag (ZOH input)
+    h = 1.0 / FS / sub
+    e = math.exp(-h / tc)
+    tau = u[0]
+    fine = np.empty(u.size * sub)
+    for k in range(u.size):
+        for j in range(sub):
+            # mid-point value of the sub-step (exact exponential, evaluated at h/2)
+            fine[k * sub + j] = u[k] + (tau - u[k]) * math.exp(-0.5 * h / tc)
+            tau = u[k] + (tau - u[k]) * e
+    s = (np.arange(sub) + 0.5) / sub
+    ref = np.array([np.sum(s * fine[(k - 1) * sub:k * sub]) / sub + np.sum((1 - s) * fine[k * sub:(k + 1) * sub]) / sub
+                    for k in range(1, u.size - 1)])
+    assert_allclose(lagged_torque(u, FS, tc), ref, atol=1e-8)
+    assert_allclose(lagged_torque(u, FS, 0.0), 0.5 * (u[:-2] + u[1:-1]))
+
+
+def test_local_motor_interpolant_is_exact_on_a_parabola_and_local():
+    from commission.ident.residual import motor_interpolant
+
+    n = 40
+    k = np.arange(n, dtype=float)
+    x = 0.3 * k**2 - 2.0 * k + 1.0
+    c = motor_interpolant(x, "local")
+    s = 0.37
+    mid = ((c[:, 0] * s + c[:, 1]) * s + c[:, 2]) * s + c[:, 3]
+    xs = k[:-1] + s
+    # interior intervals (the one-sided end slopes are exact for a parabola too with np.gradient)
+    assert_allclose(mid[1:-1], (0.3 * xs**2 - 2.0 * xs + 1.0)[1:-1], rtol=1e-12)
+    # a kink disturbs only the intervals next to it ("spline" rings through the whole record)
+    kink = np.where(k > 20, k - 20.0, 0.0)
+    local = motor_interpolant(kink, "local")
+    spline = motor_interpolant(kink, "spline")
+    far = slice(0, 15)
+    assert np.all(local[far] == 0.0)
+    assert np.max(np.abs(spline[far])) > 1e-6
+
+
+@pytest.fixture(scope="module")
+def unideal():
+    tau = chirp(ExcitationConfig()).samples
+    return Plant(PlantParameters(**TRUE, epsilon_deg=0.40, torque_noise_nm=NOISE_NM, seed=3,
+                                 coulomb_motor_nm=0.01, coulomb_load_nm=0.01,
+                                 current_loop_bandwidth_hz=1000.0), FS).run_torque(tau)
+
+
+def test_residual_with_the_true_friction_and_lag_is_at_the_noise_floor(unideal):
+    p = prepare_residual(unideal.torque_ref, FS, motor_position=unideal.motor_position, cutoff_hz=400.0,
+                         velocity_scale_rad_s=2e-3)
+    ref = float(np.sqrt(np.mean(p.torque_f ** 2)))
+    tc = 1.0 / (2 * math.pi * 1000.0)
+    full = torque_residual(p, **TRUE, epsilon_rad=math.radians(0.40), coulomb_motor_nm=0.01,
+                           coulomb_load_nm=0.01, lag_s=tc)
+    no_lag = torque_residual(p, **TRUE, epsilon_rad=math.radians(0.40), coulomb_motor_nm=0.01,
+                             coulomb_load_nm=0.01)
+    lumped = torque_residual(p, **TRUE, epsilon_rad=math.radians(0.40), coulomb_motor_nm=0.02, lag_s=tc)
+    # outside the few stick windows (velocity reversals, the identifier's own v_s) at the floor
+    v = np.abs(full.vector)
+    assert np.median(v) / ref < 5e-4
+    assert full.cost / ref < 5e-3
+    assert no_lag.cost > 10 * full.cost
+    assert lumped.cost > 5 * full.cost  # load friction is not motor friction: the gap shows it

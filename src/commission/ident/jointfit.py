@@ -25,13 +25,20 @@ of a light load with backlash) never recovered.
    simulation releases the GIL). Two starts that agree end the loop. Then
    chaotic impact bursts are dropped (:func:`burst_mask`) and the fit repeated.
 
+Optional terms (:class:`ModelTerms`, issue 8). Motor Coulomb friction is one more linear
+column of the projection (F_cm solved like J_m); the load's Coulomb rate F_cl/J_l and the
+current-loop time constant T_c [µs] are further nonlinear parameters (bounded ≥ 0). In the
+start search the lag enters in its first-order form τ ≈ τ_ref − T_c·τ̇_ref (a linear column,
+so the cells carry a T_c estimate), and the motor column stands in for both frictions.
+
 Interval. At the optimum the full 7-column Jacobian in (ln J_m, ln J_l, ln B_m,
 ln B_l, ln K, ln D, ε) — J_m and B_m columns analytic, the rest by finite
 differences — gives cov = s²·(JᵀJ)⁻¹, s² = SSR/(n − 7), n the number of kept
 residual samples after the low-pass and the decimation to ~2× the cut-off (so
 that the samples are roughly independent: n is the effective degrees of
 freedom). ε's interval is ε̂ ± 1.96·σ_ε, clipped at 0; the other parameters get
-relative standard errors. This is a statistical interval: it assumes the model
+relative standard errors; the terms get absolute standard errors (``term_stderr``), from
+which :mod:`commission.ident.hybrid` selects them. This is a statistical interval: it assumes the model
 is right and the residual is noise; model errors (unmodelled friction, lag) are
 not in it.
 """
@@ -60,6 +67,9 @@ __all__ = [
     "LoadRates",
     "cell_rates",
     "projected_residual",
+    "projected_fit",
+    "ProjectedFit",
+    "ModelTerms",
     "burst_mask",
     "search_starts",
     "joint_fit",
@@ -69,6 +79,8 @@ _PARAM_NAMES = ("J_m", "J_l", "B_m", "B_l", "K", "D")
 #: Forward-difference steps: relative (log-parameters) and absolute for ε [deg].
 _FD_LOG_STEP = 1e-6
 _FD_EPS_STEP_DEG = 1e-5
+#: Upper bound of the current-loop time constant in the fit [µs] (a 32 Hz loop).
+_LAG_MAX_US = 5000.0
 
 
 # ----------------------------------------------------------------------------
@@ -133,6 +145,90 @@ class LoadRates:
         return cls(omega2=p.K / p.J_l, d=p.D / p.J_l, b=p.B_l / p.J_l)
 
 
+@dataclass(frozen=True)
+class ModelTerms:
+    """Optional terms of the model beyond the paper's two-mass + dead zone (each off by default).
+
+    * ``coulomb_motor`` — F_cm·tanh(ẋ_m/v_s) in the motor equation: a linear column of the
+      torque residual, projected out like J_m and B_m.
+    * ``coulomb_load`` — F_cl·tanh(ẋ_l/v_s) in the load equation: inside the load simulation,
+      a nonlinear parameter (F_cl/J_l).
+    * ``current_loop`` — a first-order lag T_c·τ̇ = τ_ref − τ between the torque reference and
+      the motor torque: T_c is a nonlinear parameter (the torque regressor is refiltered).
+    """
+
+    coulomb_motor: bool = False
+    coulomb_load: bool = False
+    current_loop: bool = False
+
+    @property
+    def any(self) -> bool:
+        return self.coulomb_motor or self.coulomb_load or self.current_loop
+
+    def names(self) -> tuple[str, ...]:
+        return tuple(n for n in ("coulomb_motor", "coulomb_load", "current_loop") if getattr(self, n))
+
+
+@dataclass(frozen=True)
+class ProjectedFit:
+    """Result of :func:`projected_fit`: residual and the linearly solved parameters."""
+
+    residual: NDArray[np.float64]
+    parameters: TwoMassParameters
+    coulomb_motor_nm: float = 0.0
+    """F_cm [N·m] (0 when the column is not in the model)."""
+    lag_linear_s: float = 0.0
+    """T_c [s] of the first-order lag column τ ≈ τ_ref − T_c·τ̇_ref (only with ``lag_linear``)."""
+
+
+def projected_fit(problem: ResidualProblem, rates: LoadRates, epsilon_rad: float, *,
+                  load_weight_nm_per_rad: float = 0.0, keep: NDArray[np.bool_] | None = None,
+                  coulomb_motor: bool = False, coulomb_load_rate: float = 0.0, lag_s: float = 0.0,
+                  lag_linear: bool = False) -> ProjectedFit:
+    """:func:`projected_residual` with the optional terms (see :class:`ModelTerms`).
+
+    :param coulomb_motor: add the motor Coulomb column (F_cm solved linearly).
+    :param coulomb_load_rate: F_cl/J_l of the load simulation [rad/s²].
+    :param lag_s: exact first-order current-loop time constant T_c [s] on τ_ref.
+    :param lag_linear: add the column Δτ_ref/Ts (T_c solved linearly to first order; for the
+        start search, where T_c is not yet a parameter).
+    """
+    sim = simulate_load(problem, 1.0, rates.b, rates.omega2, rates.d, epsilon_rad, coulomb_load_rate)
+    g_f = _filtfilt_decimate(problem.sos, problem.zi, sim.shaft_torque, problem.padlen,
+                             problem.decimation)
+    cols = [problem.acceleration_f, problem.velocity_f, g_f]
+    if coulomb_motor and problem.coulomb_f is not None:
+        cols.append(problem.coulomb_f)
+    if lag_linear and problem.torque_rate_f is not None:
+        cols.append(problem.torque_rate_f)
+    A = np.stack(cols, axis=1)
+    target = problem.lagged_torque_f(lag_s)
+    sc = np.sqrt(np.sum(A * A, axis=0))
+    sc[sc == 0.0] = 1.0
+    if keep is None:
+        coef, *_ = np.linalg.lstsq(A / sc, target, rcond=None)
+    else:
+        coef, *_ = np.linalg.lstsq(A[keep] / sc, target[keep], rcond=None)
+    coef = coef / sc
+    J_m, B_m, J_l = coef[:3]
+    r = A @ coef - target
+    if keep is not None:
+        r = np.where(keep, r, 0.0)
+    if problem.load_position is not None and load_weight_nm_per_rad > 0.0:
+        r = np.concatenate((r, load_weight_nm_per_rad
+                            * (sim.load_position - problem.load_position)[1:-1:problem.decimation]))
+    params = TwoMassParameters(J_m=float(J_m), J_l=float(J_l), B_m=float(B_m),
+                               B_l=float(rates.b * J_l), K=float(rates.omega2 * J_l),
+                               D=float(rates.d * J_l))
+    i = 3
+    fcm = 0.0
+    if coulomb_motor and problem.coulomb_f is not None:
+        fcm = float(coef[i])
+        i += 1
+    tl = float(coef[i]) if lag_linear and problem.torque_rate_f is not None else 0.0
+    return ProjectedFit(residual=r, parameters=params, coulomb_motor_nm=fcm, lag_linear_s=tl)
+
+
 def projected_residual(problem: ResidualProblem, rates: LoadRates, epsilon_rad: float, *,
                        load_weight_nm_per_rad: float = 0.0,
                        keep: NDArray[np.bool_] | None = None,
@@ -145,29 +241,11 @@ def projected_residual(problem: ResidualProblem, rates: LoadRates, epsilon_rad: 
     (variable projection). Returns (vector, parameters); the vector has a second block
     w·(x_l,sim − x_l,meas) when the problem carries a load encoder and w > 0. ``keep`` (a mask
     over the decimated motor samples) drops samples from the projection and zeroes them in the
-    vector (see :func:`burst_mask`).
+    vector (see :func:`burst_mask`). The optional terms: :func:`projected_fit`.
     """
-    sim = simulate_load(problem, 1.0, rates.b, rates.omega2, rates.d, epsilon_rad)
-    g_f = _filtfilt_decimate(problem.sos, problem.zi, sim.shaft_torque, problem.padlen,
-                             problem.decimation)
-    A = np.stack((problem.acceleration_f, problem.velocity_f, g_f), axis=1)
-    sc = np.sqrt(np.sum(A * A, axis=0))
-    sc[sc == 0.0] = 1.0
-    if keep is None:
-        coef, *_ = np.linalg.lstsq(A / sc, problem.torque_f, rcond=None)
-    else:
-        coef, *_ = np.linalg.lstsq(A[keep] / sc, problem.torque_f[keep], rcond=None)
-    J_m, B_m, J_l = coef / sc
-    r = A @ (coef / sc) - problem.torque_f
-    if keep is not None:
-        r = np.where(keep, r, 0.0)
-    if problem.load_position is not None and load_weight_nm_per_rad > 0.0:
-        r = np.concatenate((r, load_weight_nm_per_rad
-                            * (sim.load_position - problem.load_position)[1:-1:problem.decimation]))
-    params = TwoMassParameters(J_m=float(J_m), J_l=float(J_l), B_m=float(B_m),
-                               B_l=float(rates.b * J_l), K=float(rates.omega2 * J_l),
-                               D=float(rates.d * J_l))
-    return r, params
+    pf = projected_fit(problem, rates, epsilon_rad, load_weight_nm_per_rad=load_weight_nm_per_rad,
+                       keep=keep)
+    return pf.residual, pf.parameters
 
 
 def _rms(v: NDArray[np.float64]) -> float:
@@ -211,6 +289,10 @@ class SearchCell:
     """Factor on the start's anti-resonance frequency [-]."""
     cost: float
     """RMS of the projected residual [N·m]."""
+    coulomb_motor_nm: float = 0.0
+    """F_cm of the projection when the search had the Coulomb column [N·m]."""
+    lag_s: float = 0.0
+    """First-order T_c of the projection when the search had the lag column [s]."""
 
     def rates(self, start: TwoMassParameters) -> LoadRates:
         """Load rates of this cell around ``start`` (see :func:`cell_rates`)."""
@@ -248,10 +330,19 @@ class SplitSearch:
 
 
 def _cell_cost(problem: ResidualProblem, start: TwoMassParameters, eps: float, phi: float,
-               scale: float, w_load: float) -> float:
-    r, _ = projected_residual(problem, cell_rates(start, phi, scale), eps,
-                              load_weight_nm_per_rad=w_load)
-    return _rms(r)
+               scale: float, w_load: float, terms: ModelTerms | None = None,
+               fixed: tuple[float, float] | None = None) -> SearchCell:
+    t = terms or ModelTerms()
+    if fixed is not None:  # (F_cl [N·m], T_c [s]) known from a previous fit: exact terms
+        fcl, lag = fixed
+        pf = projected_fit(problem, cell_rates(start, phi, scale), eps, load_weight_nm_per_rad=w_load,
+                           coulomb_motor=t.coulomb_motor, coulomb_load_rate=fcl / start.J_l, lag_s=lag)
+        return SearchCell(float(eps), float(phi), float(scale), _rms(pf.residual),
+                          coulomb_motor_nm=2.0 * fcl, lag_s=lag)
+    pf = projected_fit(problem, cell_rates(start, phi, scale), eps, load_weight_nm_per_rad=w_load,
+                       coulomb_motor=t.coulomb_motor or t.coulomb_load, lag_linear=t.current_loop)
+    return SearchCell(float(eps), float(phi), float(scale), _rms(pf.residual),
+                      coulomb_motor_nm=pf.coulomb_motor_nm, lag_s=max(pf.lag_linear_s, 0.0))
 
 
 def _distinct_best(cells: Sequence[SearchCell], n: int, min_sep_rad: float) -> tuple[SearchCell, ...]:
@@ -278,6 +369,8 @@ def search_starts(
     seed: int = 0,
     threads: int = 2,
     load_weight_nm_per_rad: float = 0.0,
+    terms: ModelTerms | None = None,
+    fixed_terms: tuple[float, float] | None = None,
 ) -> SplitSearch:
     """Search (ε, φ, ω_a scale) on the projected torque residual, the rest at ``start``.
 
@@ -288,6 +381,10 @@ def search_starts(
     :param method: "grid" evaluates every cell (on ``threads`` threads); "bayes" runs
         ``gp_minimize`` (expected improvement, one BLAS thread) for ``n_calls`` evaluations
         on the same cells (repeated cells are not re-evaluated nor counted).
+    :param terms: candidate terms; their linear forms are projected in every cell (the motor
+        Coulomb column, also standing in for the load's, and the first-order lag column), so
+        that friction and lag cannot move the best cells; the cells carry their estimates.
+    :param fixed_terms: (F_cl [N·m], T_c [s]) from a previous fit, used exactly instead.
     """
     t0 = time.perf_counter()
     eps = np.asarray(epsilons_rad, dtype=float)
@@ -299,8 +396,8 @@ def search_starts(
     if method == "grid":
         cells = [(e, p, k) for k in sc for p in ph for e in eps]
         with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-            costs = list(pool.map(lambda c: _cell_cost(problem, start, c[0], c[1], c[2], w), cells))
-        history = [SearchCell(float(e), float(p), float(k), float(c)) for (e, p, k), c in zip(cells, costs)]
+            history = list(pool.map(
+                lambda c: _cell_cost(problem, start, c[0], c[1], c[2], w, terms, fixed_terms), cells))
     elif method == "bayes":
         # one 1-D Bayesian search over ε per (φ, scale) pair, through the project's
         # gp_minimize wrapper (one BLAS thread, cached repeats, local-minimum polish)
@@ -310,9 +407,9 @@ def search_starts(
         for k in sc:
             for p in ph:
                 def f(e: float, _p: float = float(p), _k: float = float(k)) -> float:
-                    c = _cell_cost(problem, start, e, _p, _k, w)
-                    history.append(SearchCell(float(e), _p, _k, c))
-                    return c
+                    c = _cell_cost(problem, start, e, _p, _k, w, terms, fixed_terms)
+                    history.append(c)
+                    return c.cost
 
                 minimize_on_grid(f, grid, n_initial=5, max_evaluations=n_calls, seed=seed)
     else:
@@ -353,6 +450,20 @@ class JointFit:
     """Decimated residual vector at the optimum [N·m] (dropped bursts are zero)."""
     dropped_fraction: float = 0.0
     """Fraction of the residual samples dropped as chaotic bursts (:func:`burst_mask`)."""
+    terms: ModelTerms = field(default_factory=ModelTerms)
+    """The optional terms that were in the model."""
+    coulomb_motor_nm: float = 0.0
+    """F_cm [N·m] (0 when not in the model)."""
+    coulomb_load_nm: float = 0.0
+    """F_cl [N·m] (0 when not in the model)."""
+    lag_s: float = 0.0
+    """Current-loop time constant T_c [s] (0 when not in the model)."""
+    term_stderr: dict[str, float] = field(default_factory=dict)
+    """Standard errors of the terms' values: coulomb_motor_nm, coulomb_load_nm [N·m], lag_s [s]."""
+    mask: NDArray[np.bool_] | None = field(repr=False, default=None)
+    """Kept decimated motor samples (None: all)."""
+    n_used: int = 0
+    """Residual samples used (after dropping bursts)."""
 
 
 class _Counter:
@@ -386,6 +497,8 @@ def joint_fit(
     trim_threshold: float = 10.0,
     consensus_rtol: float = 1e-3,
     stop_cost_nm: float = 0.0,
+    terms: ModelTerms | None = None,
+    initial_mask: NDArray[np.bool_] | None = None,
 ) -> JointFit:
     """Least squares of (K/J_l, D/J_l, B_l/J_l, ε) with (J_m, B_m, J_l) projected, per start.
 
@@ -395,20 +508,45 @@ def joint_fit(
     once two of them agree on cost and ε within ``consensus_rtol`` (ε within 1e-4°), or one
     reaches ``stop_cost_nm`` (RMS residual, e.g. the noise floor). Then the
     best solution is refitted without chaotic bursts (:func:`burst_mask`, ``trim_rounds``).
+
+    ``terms`` adds the optional model terms (:class:`ModelTerms`): F_cm projected, F_cl/J_l ≥ 0
+    [rad/s²] and T_c ≥ 0 [µs] as further nonlinear parameters, started from the cell's
+    estimates (the search's linear forms). ``initial_mask`` starts with samples dropped.
     """
     t0 = time.perf_counter()
+    tm = terms or ModelTerms()
     counter = _Counter()
     w = load_weight_nm_per_rad
-    mask: list[NDArray[np.bool_] | None] = [None]
+    mask: list[NDArray[np.bool_] | None] = [initial_mask]
+    i_cl = 4 if tm.coulomb_load else -1
+    i_lag = (4 + int(tm.coulomb_load)) if tm.current_loop else -1
+    n_th = 4 + int(tm.coulomb_load) + int(tm.current_loop)
+
+    def unpack(th: NDArray[np.float64]) -> tuple[LoadRates, float, float, float]:
+        o2, d, b = np.exp(th[:3])
+        q = float(th[i_cl]) if i_cl >= 0 else 0.0
+        lag = float(th[i_lag]) * 1e-6 if i_lag >= 0 else 0.0
+        return LoadRates(o2, d, b), math.radians(th[3]), q, lag
+
+    def pfit(th: NDArray[np.float64]) -> ProjectedFit:
+        rates, eps, q, lag = unpack(th)
+        return projected_fit(problem, rates, eps, load_weight_nm_per_rad=w, keep=mask[0],
+                             coulomb_motor=tm.coulomb_motor, coulomb_load_rate=q, lag_s=lag)
+
+    last: list[tuple[bytes, object, NDArray[np.float64]]] = []
 
     def fun(th: NDArray[np.float64]) -> NDArray[np.float64]:
+        # least_squares asks for the Jacobian at the point it has just evaluated: remember the
+        # last residual (keyed by the point and the mask) instead of simulating it twice
+        key = np.asarray(th, dtype=np.float64).tobytes()
+        if last and last[0][0] == key and last[0][1] is mask[0]:
+            return last[0][2]
         counter.n += 1
-        o2, d, b = np.exp(th[:3])
-        r, _ = projected_residual(problem, LoadRates(o2, d, b), math.radians(th[3]),
-                                  load_weight_nm_per_rad=w, keep=mask[0])
+        r = pfit(th).residual
+        last[:] = [(key, mask[0], r)]
         return r
 
-    steps = np.array([_FD_LOG_STEP] * 3 + [_FD_EPS_STEP_DEG])
+    steps = np.array([_FD_LOG_STEP] * 3 + [_FD_EPS_STEP_DEG] + [1e-4] * (n_th - 4))
     eps_max_deg = math.degrees(epsilon_max_rad)
     n_motor = problem.acceleration_f.shape[0]
     rate = problem.sample_rate_hz / problem.decimation
@@ -417,13 +555,27 @@ def joint_fit(
         for cell in starts:
             if isinstance(cell, SearchCell):
                 eps0, phi, rates = cell.epsilon_rad, cell.phi, cell.rates(start)
+                fcm0, lag0 = cell.coulomb_motor_nm, cell.lag_s
             else:
-                eps0, phi = cell
+                eps0, phi = cell[0], cell[1]
                 rates = cell_rates(start, phi)
+                fcm0, lag0 = 0.0, 0.0
+            extra0: list[float] = []
+            lo_x: list[float] = []
+            hi_x: list[float] = []
+            if tm.coulomb_load:
+                # the search's motor column holds F_cm + F_cl: start with half of it on the load
+                extra0.append(max(0.5 * fcm0, 0.0) / max(start.J_l, 1e-12))
+                lo_x.append(0.0)
+                hi_x.append(1e7)
+            if tm.current_loop:
+                extra0.append(min(max(lag0, 0.0) * 1e6, 0.9 * _LAG_MAX_US))
+                lo_x.append(0.0)
+                hi_x.append(_LAG_MAX_US)
             th0 = np.array([math.log(rates.omega2), math.log(rates.d), math.log(rates.b),
-                            min(math.degrees(eps0), eps_max_deg)])
-            lo = np.concatenate((th0[:3] - 4.0, [0.0]))
-            hi = np.concatenate((th0[:3] + 4.0, [eps_max_deg]))
+                            min(math.degrees(eps0), eps_max_deg)] + extra0)
+            lo = np.concatenate((th0[:3] - 4.0, [0.0], lo_x))
+            hi = np.concatenate((th0[:3] + 4.0, [eps_max_deg], hi_x))
             th0 = np.clip(th0, lo + 1e-9, hi - 1e-9)
 
             def jac(th: NDArray[np.float64], *_: object, _hi: NDArray[np.float64] = hi) -> NDArray[np.float64]:
@@ -444,7 +596,7 @@ def joint_fit(
         _, sol, _, _, lo, hi = results[0]
         th = sol.x
         # drop chaotic bursts (see burst_mask) and refit until the kept set is stable
-        dropped = 0.0
+        dropped = 0.0 if mask[0] is None else 1.0 - float(mask[0].mean())
         for _ in range(trim_rounds):
             r_now = fun(th)[:n_motor]
             keep = burst_mask(r_now, rate, threshold=trim_threshold)
@@ -463,19 +615,30 @@ def joint_fit(
             sol = least_squares(fun, np.clip(th, lo, hi), jac=jac2, bounds=(lo, hi), method="trf",
                                 x_scale="jac", xtol=1e-8, ftol=1e-10, gtol=1e-8, max_nfev=max_nfev)
             th = sol.x
-        eps = math.radians(th[3])
-        r, params = projected_residual(problem, LoadRates(*np.exp(th[:3])), eps,
-                                       load_weight_nm_per_rad=w, keep=mask[0])
+        pf = pfit(th)
         counter.n += 1
-        # covariance in (ln J_m, ln J_l, ln B_m, ln B_l, ln K, ln D, ε[deg]) from the full residual
+        r, params = pf.residual, pf.parameters
+        _, eps, q, lag = unpack(th)
+        fcm = pf.coulomb_motor_nm
+        fcl = q * params.J_l
+        # covariance in (ln J_m, ln J_l, ln B_m, ln B_l, ln K, ln D, ε[deg], [F_cm], [F_cl], [T_c µs])
+        # from the full residual
+        n_x = 7 + int(tm.coulomb_motor) + int(tm.coulomb_load) + int(tm.current_loop)
+        j_cm = 7 if tm.coulomb_motor else -1
+        j_cl = 7 + int(tm.coulomb_motor) if tm.coulomb_load else -1
+        j_lag = n_x - 1 if tm.current_loop else -1
 
-        def full(t7: NDArray[np.float64]) -> NDArray[np.float64]:
+        def full(tx: NDArray[np.float64]) -> NDArray[np.float64]:
             counter.n += 1
-            jm, jl, bm, bl, k, d = np.exp(t7[:6])
-            sim = simulate_load(problem, jl, bl, k, d, math.radians(t7[6]))
+            jm, jl, bm, bl, k, d = np.exp(tx[:6])
+            fl = float(tx[j_cl]) if j_cl >= 0 else 0.0
+            sim = simulate_load(problem, jl, bl, k, d, math.radians(tx[6]), fl)
             ts_f = _filtfilt_decimate(problem.sos, problem.zi, sim.shaft_torque, problem.padlen,
                                       problem.decimation)
-            v = jm * problem.acceleration_f + bm * problem.velocity_f + ts_f - problem.torque_f
+            lg = float(tx[j_lag]) * 1e-6 if j_lag >= 0 else 0.0
+            v = jm * problem.acceleration_f + bm * problem.velocity_f + ts_f - problem.lagged_torque_f(lg)
+            if j_cm >= 0 and problem.coulomb_f is not None:
+                v = v + float(tx[j_cm]) * problem.coulomb_f
             if mask[0] is not None:
                 v = np.where(mask[0], v, 0.0)
             if problem.load_position is not None and w > 0.0:
@@ -483,37 +646,53 @@ def joint_fit(
             return v
 
         pa = params.as_array()
+        extras = ([fcm] if tm.coulomb_motor else []) + ([fcl] if tm.coulomb_load else []) \
+            + ([lag * 1e6] if tm.current_loop else [])
         if np.all(pa > 0.0):
-            t7 = np.concatenate((np.log(pa), [th[3]]))
-            f7 = full(t7)
-            # J_m and B_m columns are analytic (linear terms); the other five by finite differences
-            cols = [1, 3, 4, 5, 6]
-            Jp = _fd_jacobian(lambda t5: full(_embed(t7, cols, t5)), t7[cols], f7,
-                              np.array([_FD_LOG_STEP] * 4 + [_FD_EPS_STEP_DEG]), np.full(5, np.inf), pool)
-            J7 = np.zeros((f7.size, 7))
-            J7[:, cols] = Jp
-            J7[:n_motor, 0] = params.J_m * problem.acceleration_f
-            J7[:n_motor, 2] = params.B_m * problem.velocity_f
-            n_used = f7.size - (0 if mask[0] is None else int((~mask[0]).sum()))
-            dof = max(n_used - 7, 1)
-            s2 = float(np.sum(f7 * f7)) / dof
+            tx = np.concatenate((np.log(pa), [th[3]], extras))
+            fx = full(tx)
+            # J_m, B_m and F_cm columns are analytic (linear terms); the others by finite differences
+            cols = [1, 3, 4, 5, 6] + [j for j in (j_cl, j_lag) if j >= 0]
+            fd_steps = np.array([_FD_LOG_STEP] * 4 + [_FD_EPS_STEP_DEG]
+                                + ([1e-7] if j_cl >= 0 else []) + ([1e-3] if j_lag >= 0 else []))
+            Jp = _fd_jacobian(lambda sub: full(_embed(tx, cols, sub)), tx[cols], fx,
+                              fd_steps, np.full(len(cols), np.inf), pool)
+            JX = np.zeros((fx.size, n_x))
+            JX[:, cols] = Jp
+            JX[:n_motor, 0] = params.J_m * problem.acceleration_f
+            JX[:n_motor, 2] = params.B_m * problem.velocity_f
+            if j_cm >= 0 and problem.coulomb_f is not None:
+                JX[:n_motor, j_cm] = problem.coulomb_f
+            if mask[0] is not None:
+                JX[:n_motor][~mask[0]] = 0.0
+            n_used = fx.size - (0 if mask[0] is None else int((~mask[0]).sum()))
+            dof = max(n_used - n_x, 1)
+            s2 = float(np.sum(fx * fx)) / dof
             try:
-                sd = np.sqrt(np.clip(np.diag(np.linalg.inv(J7.T @ J7)) * s2, 0.0, None))
+                sd = np.sqrt(np.clip(np.diag(np.linalg.inv(JX.T @ JX)) * s2, 0.0, None))
             except np.linalg.LinAlgError:
-                sd = np.full(7, np.inf)
+                sd = np.full(n_x, np.inf)
         else:
-            dof = max(r.size - 7, 1)
-            sd = np.full(7, np.inf)
+            dof = max(r.size - n_x, 1)
+            sd = np.full(n_x, np.inf)
     sd_eps = math.radians(float(sd[6]))
     rel = {name: float(sd[i]) for i, name in enumerate(_PARAM_NAMES)}
     interval = (max(0.0, eps - 1.96 * sd_eps), eps + 1.96 * sd_eps)
+    extra_sd = {}
+    if j_cm >= 0:
+        extra_sd["coulomb_motor_nm"] = float(sd[j_cm])
+    if j_cl >= 0:
+        extra_sd["coulomb_load_nm"] = float(sd[j_cl])
+    if j_lag >= 0:
+        extra_sd["lag_s"] = float(sd[j_lag]) * 1e-6
     return JointFit(
         parameters=params, epsilon_rad=eps, cost=_rms(r), epsilon_stderr_rad=sd_eps,
         epsilon_interval_rad=interval, relative_stderr=rel, dof=dof, evaluations=counter.n,
         starts=tuple((float(e0), float(p0), float(c), math.radians(float(s.x[3])))
                      for c, s, e0, p0, _, _ in results),
         seconds=time.perf_counter() - t0, success=bool(sol.success), message=str(sol.message),
-        residual=r, dropped_fraction=dropped,
+        residual=r, dropped_fraction=dropped, terms=tm, coulomb_motor_nm=fcm, coulomb_load_nm=fcl,
+        lag_s=lag, term_stderr=extra_sd, mask=mask[0], n_used=int(n_used if np.all(pa > 0.0) else r.size),
     )
 
 

@@ -33,13 +33,31 @@ backward-difference velocity is not used at all (positions are).
 
 Load simulation
 ---------------
-The motor position between samples is a cubic spline through the latched
-positions. The load state (x_l, v_l) is integrated with one RK4 step per sample
+The motor position between samples is a cubic through the latched positions
+(:func:`motor_interpolant`). The load state (x_l, v_l) is integrated with one RK4 step per sample
 while the gears are in contact, and analytically (viscous decay) in the gap.
 Contact and separation are located inside the step (Hermite interpolation of
 the gap variable, checked at interior points so that grazing contacts are
 found, then bisection), so the residual is a smooth function of ε and of the
 load parameters — a requirement for finite-difference Jacobians.
+
+Optional terms (issue 8)
+------------------------
+* Motor Coulomb friction F_cm·tanh(ẋ_m/v_s): a regressor of the motor equation, linear in
+  F_cm (``ResidualProblem.coulomb``: triangle average of tanh(ẋ_m/v_s), ẋ_m from the
+  position interpolant, 8-point Gauss–Legendre per interval).
+* Load Coulomb friction F_cl·tanh(ẋ_l/v_s): in the load simulation (contact: inside RK4;
+  gap: RK4 on Ts/4 sub-steps instead of the exact viscous decay). Explicit RK4 on the stiff
+  zone of tanh needs (F_cl/J_l)/v_s·Ts ≲ 1: :func:`load_velocity_scale` widens v_s on the
+  load side where needed.
+* Current-loop lag T_c·τ̇ = τ_ref − τ: :func:`lagged_torque`, exact for held τ_ref.
+Measured with the true parameters on sim_drive's plant (0.01 N·m per side, sim v_s = 1e-3):
+RMS residual / RMS τ_ref 0.0018–0.0026 for v_s = 1e-3 … 1e-2 here (0.12 without friction;
+0.039 with all the friction lumped on the motor side), the excess over the 0.0003 noise
+floor sitting in the few stick windows at velocity reversals (burst-dropped in the fit).
+
+Motor position between samples: :func:`motor_interpolant` ("local", Catmull–Rom, by
+default; a global spline spreads each impact's kink and biased impact-rich plants).
 
 Filtering
 ---------
@@ -52,13 +70,14 @@ independent (the effective degrees of freedom used for intervals in
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
-from scipy.signal import butter, sosfilt_zi, sosfiltfilt
+from scipy.signal import butter, lfilter, sosfilt_zi, sosfiltfilt
 
 from ..exceptions import IdentificationError
 
@@ -68,6 +87,9 @@ __all__ = [
     "LoadSimulation",
     "prepare_residual",
     "simulate_load",
+    "lagged_torque",
+    "motor_interpolant",
+    "load_velocity_scale",
     "torque_residual",
     "residual_vector",
 ]
@@ -102,25 +124,63 @@ def _hermite(y0: float, d0: float, y1: float, d1: float, u: float) -> float:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _gap_state(xl: float, vl: float, decay: float, ts: float) -> tuple[float, float]:
-    """Load position and velocity after ts seconds of free viscous decay (rate decay = B_l/J_l)."""
-    if decay * ts < 1e-9:
-        return xl + vl * ts, vl
-    e = np.exp(-decay * ts)
-    return xl + vl * (1.0 - e) / decay, vl * e
+def _smooth_sign(x: float) -> float:
+    """tanh(x), exactly ±1 where float64 tanh is (|x| > 20)."""
+    if x > 20.0:
+        return 1.0
+    if x < -20.0:
+        return -1.0
+    return math.tanh(x)
+
+
+@njit(cache=True, nogil=True)
+def _gap_state(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: float,
+               Ts: float) -> tuple[float, float]:
+    """Load position and velocity after ts seconds in the gap.
+
+    Without load Coulomb friction (cj = 0) the free viscous decay (rate decay = B_l/J_l) is
+    exact. With it, v̇ = −decay·v − cj·tanh(v·ivs) (cj = F_cl/J_l) is integrated by RK4 on
+    sub-steps of at most Ts/4 — a smooth function of ts, as the event bisection needs.
+    """
+    if cj == 0.0:
+        if decay * ts < 1e-9:
+            return xl + vl * ts, vl
+        e = np.exp(-decay * ts)
+        return xl + vl * (1.0 - e) / decay, vl * e
+    n = int(math.ceil(4.0 * ts / Ts - 1e-9))
+    if n < 1:
+        n = 1
+    h = ts / n
+    x = xl
+    v = vl
+    for _ in range(n):
+        a1 = -decay * v - cj * _smooth_sign(v * ivs)
+        v2 = v + 0.5 * h * a1
+        a2 = -decay * v2 - cj * _smooth_sign(v2 * ivs)
+        v3 = v + 0.5 * h * a2
+        a3 = -decay * v3 - cj * _smooth_sign(v3 * ivs)
+        v4 = v + h * a3
+        a4 = -decay * v4 - cj * _smooth_sign(v4 * ivs)
+        x = x + h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
+        v = v + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+    return x, v
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _accel(xm: float, vm: float, xl: float, vl: float, side: float, eps: float,
-           kj: float, dj: float, bj: float) -> tuple[float, float]:
-    """(y, load acceleration) in contact; kj = K/J_l, dj = D/J_l, bj = B_l/J_l."""
+           kj: float, dj: float, bj: float, cj: float, ivs: float) -> tuple[float, float]:
+    """(y, load acceleration) in contact; kj = K/J_l, dj = D/J_l, bj = B_l/J_l, cj = F_cl/J_l,
+    ivs = 1/(velocity scale of the smooth sign)."""
     y = xm - xl - side * eps
-    return y, kj * y + dj * (vm - vl) - bj * vl
+    a = kj * y + dj * (vm - vl) - bj * vl
+    if cj != 0.0:
+        a -= cj * _smooth_sign(vl * ivs)
+    return y, a
 
 
 @njit(cache=True, nogil=True)
 def _rk4_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float, xl: float, vl: float,
-                 side: float, eps: float, kj: float, dj: float, bj: float
+                 side: float, eps: float, kj: float, dj: float, bj: float, cj: float, ivs: float
                  ) -> tuple[float, float, float, float, float, float]:
     """One RK4 step in contact from k+s to k+se.
 
@@ -135,16 +195,16 @@ def _rk4_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float,
     va = da / Ts
     vb = db / Ts
     vc = dc / Ts
-    y1, a1 = _accel(xa, va, xl, vl, side, eps, kj, dj, bj)
+    y1, a1 = _accel(xa, va, xl, vl, side, eps, kj, dj, bj, cj, ivs)
     x2 = xl + 0.5 * h * vl
     v2 = vl + 0.5 * h * a1
-    y2, a2 = _accel(xb, vb, x2, v2, side, eps, kj, dj, bj)
+    y2, a2 = _accel(xb, vb, x2, v2, side, eps, kj, dj, bj, cj, ivs)
     x3 = xl + 0.5 * h * v2
     v3 = vl + 0.5 * h * a2
-    y3, a3 = _accel(xb, vb, x3, v3, side, eps, kj, dj, bj)
+    y3, a3 = _accel(xb, vb, x3, v3, side, eps, kj, dj, bj, cj, ivs)
     x4 = xl + h * v3
     v4 = vl + h * a3
-    y4, a4 = _accel(xc, vc, x4, v4, side, eps, kj, dj, bj)
+    y4, a4 = _accel(xc, vc, x4, v4, side, eps, kj, dj, bj, cj, ivs)
     xn = xl + h / 6.0 * (vl + 2.0 * v2 + 2.0 * v3 + v4)
     vn = vl + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
     ds = se - s
@@ -157,7 +217,7 @@ def _rk4_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float,
 
 @njit(cache=True, nogil=True)
 def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K: float, D: float,
-                   eps: float, xl0: float, vl0: float
+                   eps: float, xl0: float, vl0: float, F_l: float, ivs: float
                    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], int]:
     """Load driven by the spline motor position through the dead-zone spring.
 
@@ -181,6 +241,7 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
     kj = K / J_l
     dj = D / J_l
     bj = B_l / J_l
+    cj = F_l / J_l
     xl = xl0
     vl = vl0
     xm, _ = _motor(c, 0, 0.0)
@@ -205,7 +266,7 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
             h = (1.0 - s) * Ts
             if side != 0.0:
                 # --- contact: one RK4 step (plus quadrature of y and s·y) to the end of the interval
-                xn, vn, i0, i1, p1, dp1e = _rk4_contact(c, k, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj)
+                xn, vn, i0, i1, p1, dp1e = _rk4_contact(c, k, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
                 if eps > 0.0:
                     xa, da = _motor(c, k, s)
                     p0 = side * (xa - xl - side * eps)
@@ -233,7 +294,7 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                                 lo = mid
                         se = s + hi * (1.0 - s)
                         # Newton on the actual RK4 step length
-                        xn, vn, i0, i1, pe, dpe = _rk4_contact(c, k, s, se, Ts, xl, vl, side, eps, kj, dj, bj)
+                        xn, vn, i0, i1, pe, dpe = _rk4_contact(c, k, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
                         for _ in range(4):
                             if abs(pe) <= 1e-15 or dpe == 0.0:
                                 break
@@ -241,7 +302,7 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                             if not (s < sn <= 1.0):
                                 break
                             xq, vq, iq0, iq1, pq, dpq = _rk4_contact(c, k, s, sn, Ts, xl, vl, side, eps,
-                                                                     kj, dj, bj)
+                                                                     kj, dj, bj, cj, ivs)
                             if abs(pq) >= abs(pe):
                                 break
                             se, xn, vn, i0, i1, pe, dpe = sn, xq, vq, iq0, iq1, pq, dpq
@@ -262,7 +323,7 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                 # --- gap: free viscous decay of the load, exact; motor: the spline, exact
                 xa, da = _motor(c, k, s)
                 xc, dc = _motor(c, k, 1.0)
-                xn, vn = _gap_state(xl, vl, bj, h)
+                xn, vn = _gap_state(xl, vl, bj, h, cj, ivs, Ts)
                 z0 = xa - xl
                 z1 = xc - xn
                 dz0 = (da / Ts - vl) * h
@@ -290,7 +351,7 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                 for it in range(_BISECT_ITERATIONS + 1):
                     mid = hi if it == 0 else 0.5 * (lo + hi)
                     xq, _ = _motor(c, k, s + mid * (1.0 - s))
-                    xlq, _ = _gap_state(xl, vl, bj, mid * h)
+                    xlq, _ = _gap_state(xl, vl, bj, mid * h, cj, ivs, Ts)
                     zq = xq - xlq
                     if zq >= eps or zq <= -eps:
                         hi = mid
@@ -303,11 +364,11 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                         lo = mid
                 if zh == 0.0:
                     se = s + hit * (1.0 - s)
-                    xl, vl = _gap_state(xl, vl, bj, hit * h)
+                    xl, vl = _gap_state(xl, vl, bj, hit * h, cj, ivs, Ts)
                     s = se
                     continue
                 se = s + hi * (1.0 - s)
-                xl, vl = _gap_state(xl, vl, bj, hi * h)
+                xl, vl = _gap_state(xl, vl, bj, hi * h, cj, ivs, Ts)
                 side = 1.0 if zh > 0.0 else -1.0
                 s = se
                 events += 1
@@ -382,7 +443,8 @@ class ResidualProblem:
     sample_rate_hz: float
     """Sample rate [Hz]."""
     spline: NDArray[np.float64]
-    """Cubic-spline coefficients of the motor position, shape (N−1, 4), per sample interval, s ∈ [0, 1]."""
+    """Cubic coefficients of the motor position (:func:`motor_interpolant`), shape (N−1, 4),
+    per sample interval, s ∈ [0, 1]."""
     acceleration: NDArray[np.float64]
     """(x[k+1] − 2x[k] + x[k−1]) / Ts² [rad/s²]."""
     velocity: NDArray[np.float64]
@@ -407,6 +469,17 @@ class ResidualProblem:
     acceleration_f: NDArray[np.float64]
     velocity_f: NDArray[np.float64]
     torque_f: NDArray[np.float64]
+    coulomb: NDArray[np.float64] | None = None
+    """Motor Coulomb regressor tanh(ẋ_m/v_s), triangle-averaged, at samples 1 … N−2 [-]."""
+    coulomb_f: NDArray[np.float64] | None = None
+    """Low-passed, decimated motor Coulomb regressor tanh(ẋ_m/v_s) [-] (the column of F_cm)."""
+    torque_rate_f: NDArray[np.float64] | None = None
+    """Low-passed, decimated Δτ_ref/Ts [N·m/s]: the first-order current-loop-lag column
+    (τ ≈ τ_ref − T_c·τ̇_ref), used to start T_c by linear projection."""
+    torque_ref: NDArray[np.float64] | None = None
+    """The raw torque reference [N·m] (samples 0 … N−1), for the lagged torque."""
+    velocity_scale_rad_s: float = 2e-3
+    """Velocity scale v_s of the smooth sign tanh(v/v_s) of both Coulomb terms [rad/s]."""
 
     @property
     def n_samples(self) -> int:
@@ -418,6 +491,13 @@ class ResidualProblem:
         """Length of the decimated residual vector (motor block + load block)."""
         n = int(self.acceleration_f.shape[0])
         return 2 * n if self.load_position is not None else n
+
+    def lagged_torque_f(self, lag_s: float) -> NDArray[np.float64]:
+        """Low-passed, decimated motor torque behind a first-order current loop of time
+        constant ``lag_s`` [s] (``torque_f`` for 0), see :func:`lagged_torque`."""
+        if lag_s <= 0.0 or self.torque_ref is None:
+            return self.torque_f
+        return self.lowpass(lagged_torque(self.torque_ref, self.sample_rate_hz, lag_s))
 
     def lowpass(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         """Zero-phase low-pass, then decimation (the same operator as the residual's)."""
@@ -462,6 +542,8 @@ def prepare_residual(
     filter_order: int = 4,
     load_position: NDArray[np.float64] | None = None,
     initial_twist_rad: float | None = None,
+    velocity_scale_rad_s: float = 2e-3,
+    interpolation: str = "local",
 ) -> ResidualProblem:
     """Precompute the motor-side regressors of the torque residual.
 
@@ -475,6 +557,9 @@ def prepare_residual(
     :param load_position: measured load position [rad]; adds a second residual block
         K̂·(x_l,sim − x_l,meas) and fixes the initial twist.
     :param initial_twist_rad: x_m − x_l at sample 0 [rad]; default from the load encoder, else 0.
+    :param velocity_scale_rad_s: v_s of the Coulomb terms' smooth sign tanh(v/v_s) [rad/s].
+    :param interpolation: motor position between samples (:func:`motor_interpolant`):
+        "local" (default) or "spline".
     """
     tau = np.asarray(torque_ref, dtype=np.float64)
     n = tau.shape[0]
@@ -492,8 +577,7 @@ def prepare_residual(
         raise IdentificationError(f"residual cut-off {cutoff_hz} Hz must lie in (0, {0.5 * fs}) Hz")
     x = x - x[0]
     Ts = 1.0 / fs
-    cs = CubicSpline(np.arange(n, dtype=np.float64), x)
-    spline = np.ascontiguousarray(cs.c.T)
+    spline = motor_interpolant(x, interpolation)
     acc = (x[2:] - 2.0 * x[1:-1] + x[:-2]) * fs * fs
     vel = (x[2:] - x[:-2]) * (0.5 * fs)
     trq = 0.5 * (tau[:-2] + tau[1:-1])
@@ -516,36 +600,122 @@ def prepare_residual(
             xl = np.ascontiguousarray(xl - xl[0])
     if initial_twist_rad is not None:
         twist0 = float(initial_twist_rad)
+    if not velocity_scale_rad_s > 0.0:
+        raise IdentificationError(f"velocity scale {velocity_scale_rad_s} rad/s must be positive")
+    # motor Coulomb: triangle average of tanh(ẋ_m/v_s) with ẋ_m from the position spline,
+    # by 8-point Gauss–Legendre per sample interval (a reversal inside an interval is then
+    # weighted where it happens, not at the interval's chord velocity)
+    gx, gw = np.polynomial.legendre.leggauss(8)
+    sq = 0.5 * (gx + 1.0)
+    vq = ((3.0 * spline[:, 0:1] * sq + 2.0 * spline[:, 1:2]) * sq + spline[:, 2:3]) * fs
+    sgn = np.tanh(vq / velocity_scale_rad_s)
+    w_up = 0.5 * gw * sq          # ∫ s·f(s) ds on [0, 1]: the interval before sample k
+    w_dn = 0.5 * gw * (1.0 - sq)  # ∫ (1 − s)·f(s) ds: the interval after sample k
+    coul = sgn[:-1] @ w_up + sgn[1:] @ w_dn
+    rate = np.diff(tau)[:-1] * fs  # (τ_ref[k] − τ_ref[k−1])/Ts at samples 1 … N−2
     return ResidualProblem(
         sample_rate_hz=fs, spline=spline, acceleration=acc, velocity=vel, torque=trq,
         sos=sos, cutoff_hz=float(cutoff_hz), decimation=decimation, zi=zi, padlen=padlen, initial_twist_rad=twist0,
         load_position=xl,
         acceleration_f=lp(acc), velocity_f=lp(vel), torque_f=lp(trq),
+        coulomb=coul, coulomb_f=lp(np.ascontiguousarray(coul)), torque_rate_f=lp(np.ascontiguousarray(rate)),
+        torque_ref=np.ascontiguousarray(tau), velocity_scale_rad_s=float(velocity_scale_rad_s),
     )
 
 
+def motor_interpolant(x: NDArray[np.float64], interpolation: str = "local") -> NDArray[np.float64]:
+    """Cubic coefficients (N−1, 4) of the motor position on each sample interval, s ∈ [0, 1].
+
+    ``"spline"``: the not-a-knot cubic spline (C², error O(Ts⁴) on smooth motion). It is
+    *global*: at an impact the motor acceleration jumps (D·ẏ switches) and the spline spreads
+    that kink over many samples (ringing, decaying ×0.27 per sample), biasing the simulated
+    load around every impact. ``"local"``: cubic Hermite with central-difference slopes
+    (Catmull–Rom, C¹, error O(Ts³)): a kink disturbs only the two intervals beside it.
+    Measured with the true parameters (bench plants, 24-bit encoder, 1e-4 N·m noise), RMS of
+    the kept residual / RMS τ_ref: stiff 300 Hz (impact-rich) 0.0106 → 0.00054, bursts
+    55 % → 47 %; reference, ζ = 0.07 and stiff light 200 Hz: 0.00030 either way.
+    """
+    n = x.shape[0]
+    if interpolation == "spline":
+        cs = CubicSpline(np.arange(n, dtype=np.float64), x)
+        return np.ascontiguousarray(cs.c.T)
+    if interpolation != "local":
+        raise IdentificationError(f"unknown motor interpolation {interpolation!r}")
+    m = np.gradient(x)  # per sample; one-sided at the ends
+    x0, x1, m0, m1 = x[:-1], x[1:], m[:-1], m[1:]
+    return np.ascontiguousarray(np.stack(
+        (2.0 * (x0 - x1) + m0 + m1, 3.0 * (x1 - x0) - 2.0 * m0 - m1, m0, x0), axis=1))
+
+
+def lagged_torque(torque_ref: NDArray[np.float64], sample_rate_hz: float,
+                  lag_s: float) -> NDArray[np.float64]:
+    """Triangle-kernel average (see the module docstring) of the motor torque behind a
+    first-order current loop, T_c·τ̇ = τ_ref − τ, τ_ref held over each sample, τ(0) = τ_ref[0],
+    at samples 1 … N−2 [N·m]. Exact: within sample k, τ(k+s) = u_k + d_k·e^{−αs},
+    α = Ts/T_c, d_k = τ(k) − u_k, so the kernel integrals are closed forms in α.
+    ``lag_s`` = 0 gives (τ_ref[k−1] + τ_ref[k])/2, the ideal loop.
+    """
+    u = np.asarray(torque_ref, dtype=np.float64)
+    if lag_s <= 0.0:
+        return 0.5 * (u[:-2] + u[1:-1])
+    a = (1.0 / sample_rate_hz) / lag_s
+    e = math.exp(-a)
+    # τ_{k+1} = e·τ_k + (1 − e)·u_k
+    tk, _ = lfilter([0.0, 1.0 - e], [1.0, -e], u, zi=[u[0]])  # τ_0 = u_0
+    d = tk - u
+    if a < 1e-4:  # series: g1 = ∫s e^{−as} = 1/2 − a/3, g2 = ∫(1−s)e^{−as} = 1/2 − a/6
+        g1, g2 = 0.5 - a / 3.0, 0.5 - a / 6.0
+    else:
+        g1 = (1.0 - (1.0 + a) * e) / (a * a)
+        g2 = (a - 1.0 + e) / (a * a)
+    return 0.5 * (u[:-2] + u[1:-1]) + g1 * d[:-2] + g2 * d[1:-1]
+
+
+def load_velocity_scale(problem: ResidualProblem, coulomb_rate: float) -> float:
+    """Velocity scale [rad/s] of the load's smooth sign for a load Coulomb rate F_cl/J_l [rad/s²]:
+    the stated v_s, raised so that the stiff zone's rate (F_cl/J_l)/v_s times Ts stays ≤ 1
+    (explicit RK4 on one step per sample; the raise only widens the zone around v = 0)."""
+    Ts = 1.0 / problem.sample_rate_hz
+    return max(problem.velocity_scale_rad_s, abs(coulomb_rate) * Ts)
+
+
 def simulate_load(problem: ResidualProblem, J_l: float, B_l: float, K: float, D: float,
-                  epsilon_rad: float) -> LoadSimulation:
-    """Simulate the load driven by the measured motor position (see module docstring)."""
+                  epsilon_rad: float, coulomb_load_nm: float = 0.0) -> LoadSimulation:
+    """Simulate the load driven by the measured motor position (see module docstring).
+
+    :param coulomb_load_nm: load-side Coulomb friction F_cl [N·m], as F_cl·tanh(ẋ_l/v_s)
+        (v_s from :func:`load_velocity_scale`).
+    """
     Ts = 1.0 / problem.sample_rate_hz
     xl0 = -problem.initial_twist_rad  # motor position is shifted to start at 0
+    F_l = float(coulomb_load_nm)
+    ivs = 1.0 / load_velocity_scale(problem, F_l / float(J_l))
     I0, I1, xl, vl, events = _simulate_load(problem.spline, Ts, float(J_l), float(B_l), float(K),
-                                           float(D), max(float(epsilon_rad), 0.0), xl0, 0.0)
+                                           float(D), max(float(epsilon_rad), 0.0), xl0, 0.0, F_l, ivs)
     ts = _shaft_torque_tri(I0, I1, float(K), float(D), Ts)
     return LoadSimulation(shaft_torque=ts, load_position=xl, load_velocity=vl, events=int(events))
 
 
 def torque_residual(problem: ResidualProblem, J_m: float, J_l: float, B_m: float, B_l: float,
                     K: float, D: float, epsilon_rad: float, *,
-                    load_weight_nm_per_rad: float | None = None) -> Residual:
-    """r = J_m·Δ²x_m/Ts² + B_m·v_m + τ_s(sim) − τ_ref, low-passed zero-phase, and its RMS cost.
+                    load_weight_nm_per_rad: float | None = None, coulomb_motor_nm: float = 0.0,
+                    coulomb_load_nm: float = 0.0, lag_s: float = 0.0) -> Residual:
+    """r = J_m·Δ²x_m/Ts² + B_m·v_m + F_cm·tanh(v_m/v_s) + τ_s(sim) − τ(τ_ref), low-passed
+    zero-phase, and its RMS cost.
 
     :param load_weight_nm_per_rad: weight of the load-position block when the problem has a
         load encoder (default K: a load-position error then counts as the shaft torque it implies).
+    :param coulomb_motor_nm: motor-side Coulomb friction F_cm [N·m].
+    :param coulomb_load_nm: load-side Coulomb friction F_cl [N·m] (in the load simulation).
+    :param lag_s: time constant T_c = 1/ω_c of a first-order current loop [s] (0: ideal).
     """
-    sim = simulate_load(problem, J_l, B_l, K, D, epsilon_rad)
-    vec = _vector(problem, sim, J_m, B_m, K, load_weight_nm_per_rad)
-    raw = J_m * problem.acceleration + B_m * problem.velocity + sim.shaft_torque - problem.torque
+    sim = simulate_load(problem, J_l, B_l, K, D, epsilon_rad, coulomb_load_nm)
+    vec = _vector(problem, sim, J_m, B_m, K, load_weight_nm_per_rad, coulomb_motor_nm, lag_s)
+    trq = problem.torque if lag_s <= 0.0 or problem.torque_ref is None else \
+        lagged_torque(problem.torque_ref, problem.sample_rate_hz, lag_s)
+    raw = J_m * problem.acceleration + B_m * problem.velocity + sim.shaft_torque - trq
+    if coulomb_motor_nm != 0.0 and problem.coulomb is not None:
+        raw = raw + coulomb_motor_nm * problem.coulomb
     res = sosfiltfilt(problem.sos, raw)
     cost = float(np.sqrt(np.mean(vec * vec)))
     return Residual(residual=res, vector=vec, cost=cost, simulation=sim)
@@ -553,17 +723,21 @@ def torque_residual(problem: ResidualProblem, J_m: float, J_l: float, B_m: float
 
 def residual_vector(problem: ResidualProblem, J_m: float, J_l: float, B_m: float, B_l: float,
                     K: float, D: float, epsilon_rad: float, *,
-                    load_weight_nm_per_rad: float | None = None) -> NDArray[np.float64]:
+                    load_weight_nm_per_rad: float | None = None, coulomb_motor_nm: float = 0.0,
+                    coulomb_load_nm: float = 0.0, lag_s: float = 0.0) -> NDArray[np.float64]:
     """Only the decimated residual vector of :func:`torque_residual` (the fast path for fits)."""
-    sim = simulate_load(problem, J_l, B_l, K, D, epsilon_rad)
-    return _vector(problem, sim, J_m, B_m, K, load_weight_nm_per_rad)
+    sim = simulate_load(problem, J_l, B_l, K, D, epsilon_rad, coulomb_load_nm)
+    return _vector(problem, sim, J_m, B_m, K, load_weight_nm_per_rad, coulomb_motor_nm, lag_s)
 
 
 def _vector(problem: ResidualProblem, sim: LoadSimulation, J_m: float, B_m: float, K: float,
-            load_weight_nm_per_rad: float | None) -> NDArray[np.float64]:
+            load_weight_nm_per_rad: float | None, coulomb_motor_nm: float = 0.0,
+            lag_s: float = 0.0) -> NDArray[np.float64]:
     d = problem.decimation
     ts_f = _filtfilt_decimate(problem.sos, problem.zi, sim.shaft_torque, problem.padlen, d)
-    vec = J_m * problem.acceleration_f + B_m * problem.velocity_f + ts_f - problem.torque_f
+    vec = J_m * problem.acceleration_f + B_m * problem.velocity_f + ts_f - problem.lagged_torque_f(lag_s)
+    if coulomb_motor_nm != 0.0 and problem.coulomb_f is not None:
+        vec = vec + coulomb_motor_nm * problem.coulomb_f
     if problem.load_position is not None:
         w = float(K if load_weight_nm_per_rad is None else load_weight_nm_per_rad)
         vec = np.concatenate((vec, w * (sim.load_position - problem.load_position)[1:-1:d]))
