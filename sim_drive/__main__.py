@@ -21,7 +21,6 @@ import time
 from collections.abc import Sequence
 
 from .device import SimulatedDevice
-from .plant import PlantParameters
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -36,7 +36,7 @@ def test_full_run_over_canopen_equals_the_direct_simulation(tmp_path):
     """The paper's 10 s experiment: waveform by block download, trace by block upload."""
     cfg = Config()
     with open_drive(sim=True, sim_link="canopen", sim_plant={"seed": 3}) as drive:
-        outcome = Sequencer(cfg, drive, tmp_path / "canopen").run()
+        Sequencer(cfg, drive, tmp_path / "canopen").run()
         assert drive.state is State.SWITCH_ON_DISABLED
         assert drive.info.backend == "canopen" and drive.info.rated_torque_nm == pytest.approx(0.637)
         assert [t.direction for t in drive.transfers] == ["download"] + ["upload"] * 5

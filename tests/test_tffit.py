@@ -11,7 +11,7 @@ from scipy import signal
 from commission.exceptions import IdentificationError
 from commission.ident.frd import FRD, estimate_frd
 from commission.ident.tffit import TransferFunctionFit, fit_transfer_function
-from commission.ident.twomass import REFERENCE_PLANT, TwoMassParameters, from_velocity_tf, modes, modes_from_tf
+from commission.ident.twomass import REFERENCE_PLANT, TwoMassParameters, from_velocity_tf, modes
 
 FS = 8000.0
 

@@ -231,6 +231,46 @@ def _identifier(config: Config, args: argparse.Namespace, term: _Terminal) -> An
     return run
 
 
+def _replay(args: argparse.Namespace, config: Config, term: _Terminal, identify: Any, out_dir: Path,
+            result: dict[str, Any]) -> dict[str, Any]:
+    """--replay FILE: identify, tune and report from a recorded run (no drive)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        recording = read_log(args.replay)
+    for w in caught:
+        term.say(f"[yellow]warning:[/] {w.message}")
+        result.setdefault("warnings", []).append(str(w.message))
+    result["source"] = str(args.replay)
+    result["recording"] = _recording_summary(recording)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"cannot create output folder {out_dir}: {err.strerror or err}") from err
+    identification = None
+    tuning = None
+    recorded = _recorded_config(args.replay, config)
+    if identify is not None:
+        from .sequencer import tune_and_export, write_result
+
+        identification = identify(recording)
+        result["identification"] = identification.to_dict(str(args.replay))
+        result["files"].append(str(write_result(out_dir, identification, str(args.replay))))
+        if not args.no_tune:
+            tuning = tune_and_export(out_dir, identification, _tuning_options(config, args), _description(args),
+                                     _simulated_plant(recorded, recording))
+            result["controller"] = tuning.controller
+            result["files"] += [str(f) for f in tuning.files]
+    from .sequencer import write_run_report
+
+    report = write_run_report(out_dir, recording, identification, recorded,
+                              str(args.replay), [Path(f) for f in result["files"]], tuning)
+    if report is not None:
+        result["files"].append(str(report))
+    term.summary(f"replay of {args.replay}", _rows(result))
+    _details(term, result)
+    return result
+
+
 def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     config: Config = load_config(args.config)
     out_dir = args.out or _default_out_dir()
@@ -238,41 +278,7 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     identify = _identifier(config, args, term)
 
     if args.replay is not None:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            recording = read_log(args.replay)
-        for w in caught:
-            term.say(f"[yellow]warning:[/] {w.message}")
-            result.setdefault("warnings", []).append(str(w.message))
-        result["source"] = str(args.replay)
-        result["recording"] = _recording_summary(recording)
-        try:
-            out_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise OutputError(f"cannot create output folder {out_dir}: {err.strerror or err}") from err
-        identification = None
-        tuning = None
-        recorded = _recorded_config(args.replay, config)
-        if identify is not None:
-            from .sequencer import tune_and_export, write_result
-
-            identification = identify(recording)
-            result["identification"] = identification.to_dict(str(args.replay))
-            result["files"].append(str(write_result(out_dir, identification, str(args.replay))))
-            if not args.no_tune:
-                tuning = tune_and_export(out_dir, identification, _tuning_options(config, args), _description(args),
-                                         _simulated_plant(recorded, recording))
-                result["controller"] = tuning.controller
-                result["files"] += [str(f) for f in tuning.files]
-        from .sequencer import write_run_report
-
-        report = write_run_report(out_dir, recording, identification, recorded,
-                                  str(args.replay), [Path(f) for f in result["files"]], tuning)
-        if report is not None:
-            result["files"].append(str(report))
-        term.summary(f"replay of {args.replay}", _rows(result))
-        _details(term, result)
-        return result
+        return _replay(args, config, term, identify, out_dir, result)
 
     from .drive import open_drive
     from .sequencer import Sequencer

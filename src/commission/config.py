@@ -17,7 +17,6 @@ Unknown keys are errors, so a typo never silently falls back to a default.
 
 from __future__ import annotations
 
-import math
 from enum import Enum
 from pathlib import Path
 from typing import Any

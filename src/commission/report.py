@@ -366,7 +366,7 @@ def _fig_time(rec: Recording, ident: Any, c: _Curves) -> str:
         ax_e.plot(*_envelope(t, rec.motor_velocity - c.v_lin), color=_COLORS["linear"], lw=0.6,
                   label="measured − simulated with ε = 0 (no backlash)")
         ax_e.plot(*_envelope(t, rec.motor_velocity - c.v_sim), color=_COLORS["model"], lw=0.6,
-                  label=f"measured − simulated with ε̂")
+                  label="measured − simulated with ε̂")
         ax_e.legend(loc="upper right")
     ax_v.set_ylabel("motor velocity [rad/s]")
     ax_e.set_ylabel("error [rad/s]")

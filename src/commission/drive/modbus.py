@@ -38,10 +38,10 @@ from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
-from ..exceptions import ConfigError, DriveError, DriveFault, DriveNotFound, DriveTimeout
+from ..exceptions import ConfigError, DriveError, DriveNotFound, DriveTimeout
 from ..recording import DriveInfo, Recording
 from .base import Drive, ProgressCallback
-from .cia402 import Command, Mode, State, decode_statusword
+from .cia402 import Command, Mode
 from .description import (
     INT_TYPES,
     ChannelUnit,

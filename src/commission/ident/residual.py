@@ -576,7 +576,6 @@ def prepare_residual(
     if not 0.0 < cutoff_hz < 0.5 * fs:
         raise IdentificationError(f"residual cut-off {cutoff_hz} Hz must lie in (0, {0.5 * fs}) Hz")
     x = x - x[0]
-    Ts = 1.0 / fs
     spline = motor_interpolant(x, interpolation)
     acc = (x[2:] - 2.0 * x[1:-1] + x[:-2]) * fs * fs
     vel = (x[2:] - x[:-2]) * (0.5 * fs)
