@@ -22,8 +22,11 @@ of a light load with backlash) never recovered.
 2. **Joint fit** (:func:`joint_fit`). From the best cells in turn,
    ``scipy.optimize.least_squares`` (trf, bounds) on the three log-rates and ε ≥ 0
    in degrees; finite-difference columns on two threads (the compiled
-   simulation releases the GIL). Two starts that agree end the loop. Then
-   chaotic impact bursts are dropped (:func:`burst_mask`) and the fit repeated.
+   simulation releases the GIL). Two starts that agree end the loop. A start that
+   stalls far above the noise floor is paused and only continued (exactly where it
+   stopped) when it could be the best or agree with another start, so the result is
+   that of running every start to its end. Then chaotic impact bursts are dropped
+   (:func:`burst_mask`) and the fit repeated.
 
 Optional terms (:class:`ModelTerms`, issue 8). Motor Coulomb friction is one more linear
 column of the projection (F_cm solved like J_m); the load's Coulomb rate F_cl/J_l and the
@@ -53,7 +56,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 
 from ..exceptions import IdentificationError
 from .residual import ResidualProblem, simulate_load, _filtfilt_decimate
@@ -193,16 +196,32 @@ def projected_fit(problem: ResidualProblem, rates: LoadRates, epsilon_rad: float
     :param lag_linear: add the column Δτ_ref/Ts (T_c solved linearly to first order; for the
         start search, where T_c is not yet a parameter).
     """
+    g_f, load_position = _load_response(problem, rates, epsilon_rad, coulomb_load_rate)
+    return _project(problem, rates, g_f, load_position, problem.lagged_torque_f(lag_s),
+                    load_weight_nm_per_rad=load_weight_nm_per_rad, keep=keep,
+                    coulomb_motor=coulomb_motor, lag_linear=lag_linear)
+
+
+def _load_response(problem: ResidualProblem, rates: LoadRates, epsilon_rad: float,
+                   coulomb_load_rate: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The load simulation per unit J_l: (low-passed, decimated shaft torque, load position)."""
     sim = simulate_load(problem, 1.0, rates.b, rates.omega2, rates.d, epsilon_rad, coulomb_load_rate)
     g_f = _filtfilt_decimate(problem.sos, problem.zi, sim.shaft_torque, problem.padlen,
                              problem.decimation)
+    return g_f, sim.load_position
+
+
+def _project(problem: ResidualProblem, rates: LoadRates, g_f: NDArray[np.float64],
+             load_position: NDArray[np.float64], target: NDArray[np.float64], *,
+             load_weight_nm_per_rad: float = 0.0, keep: NDArray[np.bool_] | None = None,
+             coulomb_motor: bool = False, lag_linear: bool = False) -> ProjectedFit:
+    """The linear part of :func:`projected_fit`, from a load response and a torque target."""
     cols = [problem.acceleration_f, problem.velocity_f, g_f]
     if coulomb_motor and problem.coulomb_f is not None:
         cols.append(problem.coulomb_f)
     if lag_linear and problem.torque_rate_f is not None:
         cols.append(problem.torque_rate_f)
     A = np.stack(cols, axis=1)
-    target = problem.lagged_torque_f(lag_s)
     sc = np.sqrt(np.sum(A * A, axis=0))
     sc[sc == 0.0] = 1.0
     if keep is None:
@@ -216,7 +235,7 @@ def projected_fit(problem: ResidualProblem, rates: LoadRates, epsilon_rad: float
         r = np.where(keep, r, 0.0)
     if problem.load_position is not None and load_weight_nm_per_rad > 0.0:
         r = np.concatenate((r, load_weight_nm_per_rad
-                            * (sim.load_position - problem.load_position)[1:-1:problem.decimation]))
+                            * (load_position - problem.load_position)[1:-1:problem.decimation]))
     params = TwoMassParameters(J_m=float(J_m), J_l=float(J_l), B_m=float(B_m),
                                B_l=float(rates.b * J_l), K=float(rates.omega2 * J_l),
                                D=float(rates.d * J_l))
@@ -471,6 +490,149 @@ class _Counter:
         self.n = 0
 
 
+#: Pause of a start stalled far above the noise floor (see :class:`_Start`): after at least
+#: ``_STALL_MIN_NFEV`` evaluations, a best cost that fell by less than ``_STALL_RTOL``
+#: (relative) over the last ``_STALL_WINDOW`` evaluations. Measured (bench/bench_identify.py):
+#: the stalled starts of the ζ = 0.07, Coulomb and current-loop plants then change their cost
+#: by < 0.06 % up to max_nfev; converging starts keep falling (the slowest, soft heavy 25 Hz,
+#: by ≥ 1 % per 8 evaluations before it drops to the noise floor).
+_STALL_MIN_NFEV = 10
+_STALL_WINDOW = 8
+_STALL_RTOL = 1e-3
+
+
+class _Abandoned(Exception):
+    pass
+
+
+class _Start:
+    """One start's ``least_squares`` (trf), run on its own thread so that it can be paused.
+
+    A start that has stalled above ``stall_above`` (after at least ``_STALL_MIN_NFEV``
+    evaluations its cost fell by less than ``_STALL_RTOL`` relative over the last
+    ``_STALL_WINDOW``) is *paused*, not ended: its thread waits inside the residual function,
+    so that :meth:`finish` continues exactly the trajectory it would have followed (same
+    steps, same result), and :meth:`abandon` drops it. While paused, :attr:`cost` and
+    :attr:`x` are its best evaluated point, which is trf's current iterate (trf accepts a step
+    only when it lowers the cost). ``stall_above`` ≤ 0: never paused.
+    """
+
+    def __init__(self, fun: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+                 x0: NDArray[np.float64], jac: Callable[..., NDArray[np.float64]],
+                 lo: NDArray[np.float64], hi: NDArray[np.float64], max_nfev: int,
+                 stall_above: float) -> None:
+        import threading
+
+        self._fun, self._stall_above = fun, stall_above
+        self.cost = math.inf
+        self.x: NDArray[np.float64] | None = None
+        self.fun: NDArray[np.float64] | None = None
+        self._hist: list[float] = []
+        self._cv = threading.Condition()
+        self._state = "running"  # running → paused → running → done
+        self._abandon = False
+        self.sol: OptimizeResult | None = None
+        self._error: BaseException | None = None
+
+        def run() -> None:
+            try:
+                sol = least_squares(self._f, x0, jac=jac, bounds=(lo, hi), method="trf",
+                                    x_scale="jac", xtol=1e-8, ftol=1e-10, gtol=1e-8,
+                                    max_nfev=max_nfev)
+            except _Abandoned:
+                sol = None
+            except BaseException as err:  # noqa: BLE001 - re-raised on the caller's thread
+                sol, self._error = None, err
+            with self._cv:
+                self.sol = sol
+                self._state = "done"
+                self._cv.notify_all()
+
+        self._thread = threading.Thread(target=run, daemon=True)
+        self._thread.start()
+        self._wait()
+
+    def _f(self, th: NDArray[np.float64]) -> NDArray[np.float64]:
+        r = self._fun(th)
+        c = _rms(r)
+        if c < self.cost:
+            self.cost, self.x, self.fun = c, np.array(th, dtype=np.float64), r
+        h = self._hist
+        h.append(self.cost)
+        k = len(h)
+        if (self._stall_above > 0.0 and k >= _STALL_MIN_NFEV and k > _STALL_WINDOW
+                and self.cost > self._stall_above
+                and h[-1 - _STALL_WINDOW] - self.cost < _STALL_RTOL * self.cost):
+            self._stall_above = 0.0  # pause once; once resumed, run to the end
+            with self._cv:
+                self._state = "paused"
+                self._cv.notify_all()
+                while self._state == "paused":
+                    self._cv.wait()
+            if self._abandon:
+                raise _Abandoned
+        return r
+
+    def _wait(self) -> None:
+        with self._cv:
+            while self._state == "running":
+                self._cv.wait()
+        if self._state == "done":
+            self._thread.join()
+            if self._error is not None:
+                raise self._error
+
+    @property
+    def paused(self) -> bool:
+        return self._state == "paused"
+
+    def finish(self) -> OptimizeResult:
+        """The result of the whole run (continues a paused start to its end)."""
+        if self._state == "paused":
+            with self._cv:
+                self._state = "running"
+                self._cv.notify_all()
+            self._wait()
+        assert self.sol is not None
+        return self.sol
+
+    def abandon(self) -> OptimizeResult:
+        """Drop a paused start: its best point so far as the result."""
+        if self._state == "paused":
+            with self._cv:
+                self._abandon = True
+                self._state = "running"
+                self._cv.notify_all()
+            self._wait()
+            self.sol = OptimizeResult(
+                x=self.x, fun=self.fun, cost=0.5 * float(self.fun @ self.fun), success=False,
+                status=0, nfev=len(self._hist),
+                message=f"stalled: cost fell by < {_STALL_RTOL:g} (relative) over "
+                        f"{_STALL_WINDOW} evaluations, far above the best start")
+        assert self.sol is not None
+        return self.sol
+
+
+#: A paused start is continued when its cost is within this factor of the best start's.
+_RESUME_FACTOR = 1.05
+
+
+def _near(e: list, f: list, rtol: float) -> bool:
+    """Whether two starts (entries [cost, result, _Start, …]) could end in consensus."""
+    ca, cb = e[0], f[0]
+    xa = e[1].x[3] if e[1] is not None else e[2].x[3]
+    xb = f[1].x[3] if f[1] is not None else f[2].x[3]
+    return (abs(ca - cb) <= 10.0 * rtol * min(ca, cb)
+            and abs(xa - xb) <= 10.0 * max(1e-4, rtol * abs(xa)))
+
+
+def _least_squares(fun: Callable[[NDArray[np.float64]], NDArray[np.float64]], x0: NDArray[np.float64],
+                   jac: Callable[..., NDArray[np.float64]], lo: NDArray[np.float64],
+                   hi: NDArray[np.float64], max_nfev: int) -> OptimizeResult:
+    return least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
+                         xtol=1e-8, ftol=1e-10, gtol=1e-8, max_nfev=max_nfev)
+
+
 def _fd_jacobian(fun: Callable[[NDArray[np.float64]], NDArray[np.float64]], th: NDArray[np.float64],
                  f0: NDArray[np.float64], steps: NDArray[np.float64], upper: NDArray[np.float64],
                  pool: ThreadPoolExecutor) -> NDArray[np.float64]:
@@ -528,29 +690,54 @@ def joint_fit(
         lag = float(th[i_lag]) * 1e-6 if i_lag >= 0 else 0.0
         return LoadRates(o2, d, b), math.radians(th[3]), q, lag
 
+    # Caches (results are bit-identical with or without them; they only skip repeated work):
+    # the load simulation depends on (ω_a², D/J_l, B_l/J_l, ε, F_cl/J_l) only, not on T_c, so
+    # the T_c column of a finite-difference Jacobian and the final projection reuse it; the
+    # lagged torque target depends on T_c only, so the other columns reuse it; and residuals
+    # are remembered per point and mask (least_squares asks for the Jacobian at the point it
+    # has just evaluated; the burst trimming and the final projection revisit the solution).
+    sims: dict[bytes, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
+    targets: dict[float, NDArray[np.float64]] = {}
+    resids: dict[bytes, tuple[object, NDArray[np.float64]]] = {}
+
+    def _remember(cache: dict, key: object, value: object, size: int) -> None:
+        cache[key] = value
+        while len(cache) > size:
+            try:
+                del cache[next(iter(cache))]
+            except (KeyError, RuntimeError, StopIteration):  # another thread got there first
+                break
+
     def pfit(th: NDArray[np.float64]) -> ProjectedFit:
         rates, eps, q, lag = unpack(th)
-        return projected_fit(problem, rates, eps, load_weight_nm_per_rad=w, keep=mask[0],
-                             coulomb_motor=tm.coulomb_motor, coulomb_load_rate=q, lag_s=lag)
-
-    last: list[tuple[bytes, object, NDArray[np.float64]]] = []
+        n_sim = 4 + int(tm.coulomb_load)
+        skey = np.asarray(th[:n_sim], dtype=np.float64).tobytes()
+        resp = sims.get(skey)
+        if resp is None:
+            resp = _load_response(problem, rates, eps, q)
+            _remember(sims, skey, resp, 16)
+        target = targets.get(lag)
+        if target is None:
+            target = problem.lagged_torque_f(lag)
+            _remember(targets, lag, target, 16)
+        return _project(problem, rates, resp[0], resp[1], target, load_weight_nm_per_rad=w,
+                        keep=mask[0], coulomb_motor=tm.coulomb_motor)
 
     def fun(th: NDArray[np.float64]) -> NDArray[np.float64]:
-        # least_squares asks for the Jacobian at the point it has just evaluated: remember the
-        # last residual (keyed by the point and the mask) instead of simulating it twice
         key = np.asarray(th, dtype=np.float64).tobytes()
-        if last and last[0][0] == key and last[0][1] is mask[0]:
-            return last[0][2]
+        hit = resids.get(key)
+        if hit is not None and hit[0] is mask[0]:
+            return hit[1]
         counter.n += 1
         r = pfit(th).residual
-        last[:] = [(key, mask[0], r)]
+        _remember(resids, key, (mask[0], r), 16)
         return r
 
     steps = np.array([_FD_LOG_STEP] * 3 + [_FD_EPS_STEP_DEG] + [1e-4] * (n_th - 4))
     eps_max_deg = math.degrees(epsilon_max_rad)
     n_motor = problem.acceleration_f.shape[0]
     rate = problem.sample_rate_hz / problem.decimation
-    results = []
+    entries: list[list] = []  # [cost, result (None while paused), _Start, ε0, φ, lo, hi]
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
         for cell in starts:
             if isinstance(cell, SearchCell):
@@ -581,17 +768,51 @@ def joint_fit(
             def jac(th: NDArray[np.float64], *_: object, _hi: NDArray[np.float64] = hi) -> NDArray[np.float64]:
                 return _fd_jacobian(fun, th, fun(th), steps, _hi, pool)
 
-            sol = least_squares(fun, th0, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
-                                xtol=1e-8, ftol=1e-10, gtol=1e-8, max_nfev=max_nfev)
-            results.append((_rms(sol.fun), sol, eps0, phi, lo, hi))
-            if results[-1][0] <= stop_cost_nm:
+            # A start stalled far above the noise floor is paused (see _Start) and continued at
+            # the end only when it could be the best (_RESUME_FACTOR). The multi-start decisions
+            # stay those of running every start to its end: a paused start whose cost and ε are
+            # near another start's (10× the consensus tolerances; a stalled start moves < 0.1 %)
+            # could reach consensus with it and is continued at once; any other paused start
+            # cannot, so the consensus check is made only when the two best starts have ended.
+            try:
+                run = _Start(fun, th0, jac, lo, hi, max_nfev, stop_cost_nm)
+            except BaseException:
+                for e in entries:
+                    if e[1] is None:
+                        e[2].abandon()
+                raise
+            entry = [run.cost, None, run, eps0, phi, lo, hi]
+            entries.append(entry)
+            if run.paused and consensus_rtol > 0:
+                near = [e for e in entries if e is not entry and _near(e, entry, consensus_rtol)]
+                for e in ([entry] + near) if near else []:
+                    if e[1] is None:
+                        e[1] = e[2].finish()
+                        e[0] = _rms(e[1].fun)
+            elif not run.paused:
+                entry[1] = run.finish()
+                entry[0] = _rms(entry[1].fun)
+            if entry[1] is not None and entry[0] <= stop_cost_nm:
                 break  # at the noise floor: no other start can do materially better
             # consensus: two starts that end at the same cost and ε settle it
-            if len(results) >= 2 and consensus_rtol > 0:
-                a, b = sorted(results, key=lambda r: r[0])[:2]
-                if (abs(a[0] - b[0]) <= consensus_rtol * a[0]
+            if len(entries) >= 2 and consensus_rtol > 0:
+                a, b = sorted(entries, key=lambda r: r[0])[:2]
+                if (a[1] is not None and b[1] is not None
+                        and abs(a[0] - b[0]) <= consensus_rtol * a[0]
                         and abs(a[1].x[3] - b[1].x[3]) <= max(1e-4, consensus_rtol * abs(a[1].x[3]))):
                     break
+        best_cost = min(e[0] for e in entries)
+        for i, e in enumerate(entries):
+            if e[1] is None:
+                try:
+                    e[1] = e[2].finish() if e[0] <= _RESUME_FACTOR * best_cost else e[2].abandon()
+                except BaseException:
+                    for f in entries[i + 1:]:
+                        if f[1] is None:
+                            f[2].abandon()
+                    raise
+                e[0] = _rms(e[1].fun)
+        results = [(e[0], e[1], e[3], e[4], e[5], e[6]) for e in entries]
         results.sort(key=lambda r: r[0])
         _, sol, _, _, lo, hi = results[0]
         th = sol.x
@@ -612,8 +833,7 @@ def joint_fit(
             def jac2(t: NDArray[np.float64], *_: object, _hi: NDArray[np.float64] = hi) -> NDArray[np.float64]:
                 return _fd_jacobian(fun, t, fun(t), steps, _hi, pool)
 
-            sol = least_squares(fun, np.clip(th, lo, hi), jac=jac2, bounds=(lo, hi), method="trf",
-                                x_scale="jac", xtol=1e-8, ftol=1e-10, gtol=1e-8, max_nfev=max_nfev)
+            sol = _least_squares(fun, np.clip(th, lo, hi), jac2, lo, hi, max_nfev)
             th = sol.x
         pf = pfit(th)
         counter.n += 1
@@ -628,15 +848,28 @@ def joint_fit(
         j_cl = 7 + int(tm.coulomb_motor) if tm.coulomb_load else -1
         j_lag = n_x - 1 if tm.current_loop else -1
 
+        full_sims: dict[bytes, tuple[object, NDArray[np.float64]]] = {}
+
         def full(tx: NDArray[np.float64]) -> NDArray[np.float64]:
             counter.n += 1
             jm, jl, bm, bl, k, d = np.exp(tx[:6])
             fl = float(tx[j_cl]) if j_cl >= 0 else 0.0
-            sim = simulate_load(problem, jl, bl, k, d, math.radians(tx[6]), fl)
-            ts_f = _filtfilt_decimate(problem.sos, problem.zi, sim.shaft_torque, problem.padlen,
-                                      problem.decimation)
+            # the simulation does not depend on J_m, B_m, F_cm nor T_c: reuse it across those
+            skey = np.asarray([tx[1], tx[3], tx[4], tx[5], tx[6], fl], dtype=np.float64).tobytes()
+            hit = full_sims.get(skey)
+            if hit is None:
+                sim = simulate_load(problem, jl, bl, k, d, math.radians(tx[6]), fl)
+                ts_f = _filtfilt_decimate(problem.sos, problem.zi, sim.shaft_torque, problem.padlen,
+                                          problem.decimation)
+                hit = (sim, ts_f)
+                _remember(full_sims, skey, hit, 4)
+            sim, ts_f = hit
             lg = float(tx[j_lag]) * 1e-6 if j_lag >= 0 else 0.0
-            v = jm * problem.acceleration_f + bm * problem.velocity_f + ts_f - problem.lagged_torque_f(lg)
+            tgt = targets.get(lg)
+            if tgt is None:
+                tgt = problem.lagged_torque_f(lg)
+                _remember(targets, lg, tgt, 16)
+            v = jm * problem.acceleration_f + bm * problem.velocity_f + ts_f - tgt
             if j_cm >= 0 and problem.coulomb_f is not None:
                 v = v + float(tx[j_cm]) * problem.coulomb_f
             if mask[0] is not None:
