@@ -30,7 +30,32 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from ..exceptions import ConfigError
+from ..exceptions import ConfigError, DriveError
+from ..recording import REQUIRED_SIGNALS, SIGNAL_UNITS
+
+
+def _check_trace_signals(channels: dict[str, object]) -> None:
+    """A trace records only Recording signals, and at least the required ones."""
+    unknown = sorted(set(channels) - set(SIGNAL_UNITS))
+    if unknown:
+        raise ValueError(f"unknown trace signal(s) {', '.join(unknown)} (known: {', '.join(sorted(SIGNAL_UNITS))})")
+    for needed in REQUIRED_SIGNALS:
+        if needed not in channels:
+            raise ValueError(f"trace must record '{needed}'")
+
+
+def parameter_raw(spec: ParameterSpec | ModbusParameter, name: str, value: float, where: str) -> float:
+    """The raw value to write for ``value`` (in the parameter's unit): value / scale, an integer
+    unless the type is real; refused (DriveError naming the parameter) outside ``min``..``max``.
+
+    :param where: the object or register and drive, for the message.
+    """
+    raw = float(value) / spec.scale
+    if spec.type not in ("real32", "real64"):
+        raw = int(round(raw))
+    if (spec.min is not None and raw < spec.min) or (spec.max is not None and raw > spec.max):
+        raise DriveError(f"{name} = {value:g} {spec.unit} is raw {raw:g}, outside {spec.min:g}..{spec.max:g} ({where})")
+    return raw
 
 __all__ = [
     "DRIVERS_ENV", "ChannelUnit", "DriveDescription", "ExcitationMethod", "ObjectRef", "ParameterSpec",
@@ -127,13 +152,7 @@ class TraceSpec(_Model):
 
     @model_validator(mode="after")
     def _known_signals(self) -> TraceSpec:
-        known = {"torque_ref", "motor_position", "motor_velocity", "load_position", "load_velocity"}
-        unknown = sorted(set(self.channels) - known)
-        if unknown:
-            raise ValueError(f"unknown trace signal(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
-        for needed in ("torque_ref", "motor_velocity"):
-            if needed not in self.channels:
-                raise ValueError(f"trace must record '{needed}'")
+        _check_trace_signals(self.channels)
         return self
 
 
@@ -262,13 +281,7 @@ class ModbusTrace(_Model):
 
     @model_validator(mode="after")
     def _known_signals(self) -> ModbusTrace:
-        known = {"torque_ref", "motor_position", "motor_velocity", "load_position", "load_velocity"}
-        unknown = sorted(set(self.channels) - known)
-        if unknown:
-            raise ValueError(f"unknown trace signal(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
-        for needed in ("torque_ref", "motor_velocity"):
-            if needed not in self.channels:
-                raise ValueError(f"trace must record '{needed}'")
+        _check_trace_signals(self.channels)
         return self
 
 

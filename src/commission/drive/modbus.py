@@ -49,6 +49,7 @@ from .description import (
     ModbusRegister,
     ModbusSpec,
     load_description,
+    parameter_raw,
 )
 
 __all__ = [
@@ -630,13 +631,7 @@ class ModbusDrive(Drive):
         spec = self.spec.parameters.get(name)
         if spec is None:
             return super().write_parameter(name, value)
-        raw = float(value) / spec.scale
-        if spec.type not in ("real32", "real64"):
-            raw = int(round(raw))
-        if (spec.min is not None and raw < spec.min) or (spec.max is not None and raw > spec.max):
-            raise DriveError(
-                f"{name} = {value:g} {spec.unit} is raw {raw:g}, outside {spec.min:g}..{spec.max:g} "
-                f"({spec.register}, drive '{self.description.name}')")
+        raw = parameter_raw(spec, name, value, f"{spec.register}, drive '{self.description.name}'")
         self._write(spec.register, raw, name)
 
     def _shutdown(self) -> None:

@@ -41,6 +41,7 @@ from ..description import (
     ExcitationMethod,
     ObjectRef,
     load_description,
+    parameter_raw,
 )
 from .emcy import EmcyListener
 from .nmt import HeartbeatConsumer, NmtCommand, send_nmt
@@ -529,14 +530,7 @@ class CanopenDrive(Drive):
         spec = self.description.parameters.get(name)
         if spec is None:
             return super().write_parameter(name, value)
-        raw = float(value) / spec.scale
-        if spec.type not in ("real32", "real64"):
-            raw = int(round(raw))
-        if (spec.min is not None and raw < spec.min) or (spec.max is not None and raw > spec.max):
-            raise DriveError(
-                f"{name} = {value:g} {spec.unit} is raw {raw:g}, outside {spec.min:g}..{spec.max:g} "
-                f"({spec.object}, drive '{self.description.name}')"
-            )
+        raw = parameter_raw(spec, name, value, f"{spec.object}, drive '{self.description.name}'")
         self.sdo.write(spec.object, raw)
 
     # -- transfer figures (bench) ---------------------------------------------------------------------
