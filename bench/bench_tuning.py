@@ -26,62 +26,31 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from dataclasses import dataclass
 
 from commission.config import ExcitationConfig
 from commission.exceptions import CommissionError
 from commission.excitation import chirp
 from commission.ident.hybrid import identify
-from commission.ident.twomass import TwoMassParameters
 from commission.recording import Recording
 from commission.tuning import TuningOptions, design, verify
 from sim_drive.plant import Plant, PlantParameters
 
 FS = 8000.0
-J_M = 4.78e-4
+
+# One definition of the plant spread: the identifier bench's (this script runs from bench/,
+# which is then on sys.path).
+from bench_identify import FULL as _IDENT_FULL  # noqa: E402
+from bench_identify import Case  # noqa: E402
 
 
-@dataclass(frozen=True)
-class Case:
-    name: str
-    ratio: float
-    f_r_hz: float
-    zeta: float
-    eps_deg: float
-    coulomb_nm: float = 0.0
-    lag_hz: float | None = None
-    B_l: float | None = None
-
-    def params(self) -> TwoMassParameters:
-        if self.name.startswith("reference"):
-            return TwoMassParameters(J_m=4.78e-4, J_l=1.92e-4, B_m=0.84e-2, B_l=0.53e-2, K=23.10, D=1.54e-2)
-        J_l = self.ratio * J_M
-        w = 2 * math.pi * self.f_r_hz
-        B_l = self.B_l if self.B_l is not None else 0.53e-2 * math.sqrt(self.ratio / 0.4)
-        return TwoMassParameters(J_m=J_M, J_l=J_l, B_m=0.84e-2, B_l=B_l, K=w * w * J_l / (1 + self.ratio),
-                                 D=2 * self.zeta * w / (1 / J_M + 1 / J_l))
-
-    def truth(self) -> PlantParameters:
-        return PlantParameters(**self.params().as_dict(), epsilon_deg=self.eps_deg,
-                               coulomb_motor_nm=self.coulomb_nm, coulomb_load_nm=self.coulomb_nm,
-                               current_loop_bandwidth_hz=self.lag_hz)
+def truth(case: Case) -> PlantParameters:
+    """The simulator's plant of a case (backlash, Coulomb friction and lag included)."""
+    return PlantParameters(**case.params().as_dict(), epsilon_deg=case.eps_deg,
+                           coulomb_motor_nm=case.coulomb_nm, coulomb_load_nm=case.coulomb_nm,
+                           current_loop_bandwidth_hz=case.lag_hz)
 
 
-FULL = [  # bench/bench_identify.py's FULL list
-    Case("reference", 0.4, 65.4, 0.167, 0.40),
-    Case("reference eps=0", 0.4, 65.4, 0.167, 0.0),
-    Case("reference eps=0.9", 0.4, 65.4, 0.167, 0.90),
-    Case("stiff light 150Hz", 0.2, 150, 0.33, 0.25, B_l=1.0e-2),
-    Case("stiff light 200Hz", 0.2, 200, 0.11, 0.25, B_l=0.3e-2),
-    Case("mid 100Hz", 1.0, 100, 0.15, 0.10),
-    Case("stiff 300Hz", 2.0, 300, 0.15, 0.50),
-    Case("heavy 40Hz", 0.5, 40, 0.2, 0.90),
-    Case("soft heavy 25Hz", 4.0, 25, 0.17, 0.60, B_l=1.5e-2),
-    Case("soft heavy 20Hz", 5.0, 20, 0.15, 0.30),
-    Case("reference +coulomb", 0.4, 65.4, 0.167, 0.40, coulomb_nm=0.01),
-    Case("reference +lag1k", 0.4, 65.4, 0.167, 0.40, lag_hz=1000.0),
-    Case("reference +both", 0.4, 65.4, 0.167, 0.40, coulomb_nm=0.01, lag_hz=1000.0),
-    Case("soft heavy +both", 4.0, 25, 0.17, 0.60, coulomb_nm=0.01, lag_hz=1000.0, B_l=1.5e-2),
+FULL = [c for c in _IDENT_FULL if not c.name.startswith("ref zeta")] + [
     Case("light 300Hz r5", 5.0, 300, 0.05, 0.30),  # resonance above a slow drive's loop: notch
 ]
 QUICK = {"reference", "reference eps=0", "stiff light 150Hz", "soft heavy 25Hz", "reference +lag1k"}
@@ -89,7 +58,7 @@ QUICK = {"reference", "reference eps=0", "stiff light 150Hz", "soft heavy 25Hz",
 
 def _identify(case: Case):
     tau = chirp(ExcitationConfig()).samples
-    pp = case.truth().model_copy(update={"torque_noise_nm": 1e-4, "seed": 11})
+    pp = truth(case).model_copy(update={"torque_noise_nm": 1e-4, "seed": 11})
     r = Plant(pp, FS).run_torque(tau)
     return identify(Recording.uniform(FS, r.torque_ref, r.motor_velocity, motor_position=r.motor_position))
 
@@ -128,7 +97,7 @@ def main() -> None:
                 s = design(c.params(), opt, epsilon_rad=math.radians(c.eps_deg))
             else:
                 s = design(_identify(c), opt)
-            v = verify(s, c.truth(), opt)
+            v = verify(s, truth(c), opt)
         except CommissionError as err:
             print(f"{c.name:20s} failed: {err}")
             continue
