@@ -6,8 +6,9 @@ simulated, identified (hybrid), the controller designed on the identification an
 on the TRUE plant (sim_drive parameters, backlash included). Printed: the velocity-loop gain
 K_v, the −3 dB bandwidth on the identified model and the crossover on the true plant, the
 margins on the true plant (contact and gap = motor alone), the velocity step's overshoot, and —
-with/without backlash compensation — the position step's overshoot and settling time, the load
-error after a smooth move from the centred gap, the lost motion of out-back-out moves and the
+with/without backlash compensation (with it: the offset 2ε and the position-reference filter that
+makes moves end with the load on the driving flank) — the position step's overshoot, settling
+time and load error, the load error after a smooth move from the centred gap, the lost motion of out-back-out moves and the
 largest load limit-cycle amplitude ("comp": the direction the design chose, "off" when the
 compensation did not help on the identified model, so on = off).
 
@@ -80,7 +81,7 @@ def main() -> None:
           f"verification on the true plant (backlash, friction, lag included)")
     head = (f"{'plant':20s} {'ε°':>4s} {'notch':>5s} {'Kv Hz':>6s} {'bw Hz':>5s} {'wc Hz':>5s} {'PM°':>5s} {'GM dB':>5s} "
             f"{'gapPM':>5s} {'gapGM':>5s} {'vstep ov%':>9s} {'step ov% on/off':>15s} {'step ts ms on/off':>17s} "
-            f"{'move err µrad on/off':>20s} {'lost motion µrad on/off':>23s} {'cycle µrad on/off':>17s} "
+            f"{'step err µrad on/off':>20s} {'move err µrad on/off':>20s} {'lost motion µrad on/off':>23s} {'cycle µrad on/off':>17s} "
             f"{'comp':>4s} {'ready':>5s} {'s':>4s}")
     print(head)
     for c in cases:
@@ -117,7 +118,7 @@ def main() -> None:
               f"{_fmt(gap.phase_margin_deg if gap else None):>5s} {_fmt(gap.gain_margin_db if gap else None):>5s} "
               f"{on['velocity_step'].overshoot_pct:9.1f} {pair('position_step', 'overshoot_pct', 1, 1):>15s} "
               f"{pair('position_step', 'settling_time_s', 1e3, 1):>17s} "
-              f"{pair('position_move', 'load_error_rad', 1e6):>20s} {pair('reversal', 'lost_motion_rad', 1e6):>23s} "
+              f"{pair('position_step', 'load_error_rad', 1e6):>20s} {pair('position_move', 'load_error_rad', 1e6):>20s} {pair('reversal', 'lost_motion_rad', 1e6):>23s} "
               f"{_fmt(cyc_on, 1e6, 0) + '/' + _fmt(cyc_off, 1e6, 0):>17s} "
               f"{comp:>4s} {str(v.ready):>5s} {time.perf_counter() - t0:4.1f}")
         if not v.ready:

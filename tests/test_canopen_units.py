@@ -66,7 +66,7 @@ def test_the_three_drive_families_load():
 def test_yaskawa_parameters_are_all_there_and_all_marked_for_confirmation():
     desc = load_description("yaskawa-sigma7")
     pn = {spec.note.split()[0] for spec in desc.parameters.values()}
-    assert pn == {"Pn100", "Pn101", "Pn102", "Pn103", "Pn401", "Pn408", "Pn409", "Pn40A", "Pn40B", "Pn40C",
+    assert pn == {"Pn100", "Pn101", "Pn102", "Pn103", "Pn216", "Pn401", "Pn408", "Pn409", "Pn40A", "Pn40B", "Pn40C",
                   "Pn230", "Pn231", "Pn233"}
     od = canopen.import_od(str(desc.eds_path), 1)
     for spec in desc.parameters.values():

@@ -502,7 +502,9 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
         rows += [
             ("velocity loop", f"gain {vl['gain']:.4g} N·m·s/rad  Ti {vl['integral_time_s'] * 1e3:.3g} ms  "
                               f"bandwidth {vl['bandwidth_hz']:.0f} Hz"),
-            ("position loop", f"{ctl['position_loop']['gain_per_s']:.4g} 1/s"),
+            ("position loop", f"{ctl['position_loop']['gain_per_s']:.4g} 1/s"
+                              + (f"  reference filter {ctl['position_loop']['reference_filter_time_constant_ms']:.3g} ms"
+                                 if ctl["position_loop"].get("reference_filter_time_constant_s") else "")),
             ("notch / backlash comp.", f"{notch} / {bc.get('amount_rad', 0.0) * 1e3:.3g} mrad"),
             ("margins", f"PM {m['phase_margin_deg']:.1f}°  GM {m['gain_margin_db']:.1f} dB"),
             ("controller ready", "yes" if ver.get("ready") else "NO: " + "; ".join(ver.get("reasons", []))),

@@ -28,15 +28,17 @@ quantised positions, the controller computes u[k], and u[k] is held over
 
 Controller at tick k (every gain in SI units, see :class:`ControllerGains`)::
 
+    r_f[k] = r_f[k−1] + (r[k] − r_f[k−1])·α_r            position-reference filter (also
+                                                            on ṙ and r̈ for the feedforward)
     o[k]   = o[k−1] + (dir[k]·a/2 − o[k−1])·α_b        backlash compensation
-    v*[k]  = K_p·(r[k] + o[k] − x̂_m[k]) + k_vff·ṙ[k]      (position mode)
+    v*[k]  = K_p·(r_f[k] + o[k] − x̂_m[k]) + k_vff·ṙ_f[k]  (position mode)
     e[k]   = v*[k] − v̂_m[k]
     u_pi   = k_p·e[k] + I[k−1] + k_i·T_s·e[k]             (I[k] = I[k−1] + k_i·T_s·e[k]
                                                             unless the output saturates)
-    u[k]   = clip(N(F(u_pi + k_tff·J·r̈[k])), ±limit)     F: 1st-order low-pass,
+    u[k]   = clip(N(F(u_pi + k_tff·J·r̈_f[k])), ±limit)     F: 1st-order low-pass,
                                                             N: notch biquads
     applied over [(k+d)·Ts, (k+d+1)·Ts), d = computation delay [samples]
-with dir[k] the sign of the last non-zero reference increment (0 before any).
+with dir[k] the sign of the last non-zero increment of the unfiltered reference (0 before any).
 The compensation is written symmetric (±a/2): a drive that adds the whole amount
 a in one direction only (YASKAWA Pn230/231) differs by the constant a/2, which
 homing absorbs.
@@ -65,8 +67,9 @@ _MAX_EVENTS_PER_SUBSTEP = 16
 (_JM, _JL, _BM, _BL, _K, _D, _EPS, _FM, _FL, _VSC, _WC, _QM, _QL) = range(13)
 _N_PLANT = 13
 # controller vector
-(_KP, _KI, _KPOS, _KVFF, _KTFF, _ALPHA_F, _LIMIT, _BC_HALF, _ALPHA_B, _POSMODE, _NNOTCH, _DELAY) = range(12)
-_NOTCH0 = 12  # then 5 coefficients per notch: b0, b1, b2, a1, a2
+(_KP, _KI, _KPOS, _KVFF, _KTFF, _ALPHA_F, _LIMIT, _BC_HALF, _ALPHA_B, _POSMODE, _NNOTCH, _DELAY,
+ _ALPHA_R) = range(13)
+_NOTCH0 = 13  # then 5 coefficients per notch: b0, b1, b2, a1, a2
 _N_CTRL = _NOTCH0 + 5 * MAX_NOTCHES
 
 
@@ -225,7 +228,8 @@ def _run(r: NDArray[np.float64], v_ref: NDArray[np.float64], a_ref: NDArray[np.f
     """The closed loop over len(r) samples from rest (twist 0, centre of the gap).
 
     Rows of out: measured motor position, measured motor velocity, true load position,
-    measured load velocity, torque reference u, true twist, backlash-compensation offset.
+    measured load velocity, torque reference u, true twist, backlash-compensation offset,
+    filtered position reference r_f (position mode; 0 in velocity mode).
     """
     n = r.shape[0]
     s = np.zeros(6)
@@ -242,6 +246,10 @@ def _run(r: NDArray[np.float64], v_ref: NDArray[np.float64], a_ref: NDArray[np.f
     offset = 0.0
     direction = 0.0
     r_prev = r[0]
+    r_f = r[0]
+    v_f = v_ref[0]
+    a_f = a_ref[0]
+    alpha_r = c[_ALPHA_R]
     pos_mode = c[_POSMODE] > 0.0
     n_delay = int(c[_DELAY])
     line = np.zeros(n_delay + 1)  # computation delay: u[k] acts n_delay samples later
@@ -261,12 +269,16 @@ def _run(r: NDArray[np.float64], v_ref: NDArray[np.float64], a_ref: NDArray[np.f
             elif dr < -1e-15:
                 direction = -1.0
             offset += (direction * c[_BC_HALF] - offset) * c[_ALPHA_B]
-            v_cmd = c[_KPOS] * (r[k] + offset - pos_m) + c[_KVFF] * v_ref[k]
+            r_f += (r[k] - r_f) * alpha_r
+            v_f += (v_ref[k] - v_f) * alpha_r
+            a_f += (a_ref[k] - a_f) * alpha_r
+            v_cmd = c[_KPOS] * (r_f + offset - pos_m) + c[_KVFF] * v_f
         else:
             v_cmd = v_ref[k]
+            a_f = a_ref[k]
         e = v_cmd - vel_m
         d_integ = c[_KI] * e * Ts
-        x = c[_KP] * e + integ + d_integ + c[_KTFF] * a_ref[k]
+        x = c[_KP] * e + integ + d_integ + c[_KTFF] * a_f
         y_f += (x - y_f) * c[_ALPHA_F]
         y = y_f
         for i in range(n_notch):
@@ -290,6 +302,7 @@ def _run(r: NDArray[np.float64], v_ref: NDArray[np.float64], a_ref: NDArray[np.f
         out[4, k] = u
         out[5, k] = s[2]
         out[6, k] = offset
+        out[7, k] = r_f if pos_mode else 0.0
         if n_delay > 0:
             line[k % (n_delay + 1)] = u
             u = line[(k + 1) % (n_delay + 1)]
@@ -314,13 +327,13 @@ def substeps(J_m: float, J_l: float, B_m: float, B_l: float, K: float, D: float,
 def simulate_closed_loop(plant: NDArray[np.float64], controller: NDArray[np.float64], n_sub: int, Ts: float,
                          position_ref: NDArray[np.float64], velocity_ref: NDArray[np.float64],
                          accel_ref: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Run the compiled loop; returns out of shape (7, N) (rows: see ``_run``)."""
+    """Run the compiled loop; returns out of shape (8, N) (rows: see ``_run``)."""
     r = np.ascontiguousarray(position_ref, dtype=np.float64)
     v = np.ascontiguousarray(velocity_ref, dtype=np.float64)
     a = np.ascontiguousarray(accel_ref, dtype=np.float64)
     if not (r.shape == v.shape == a.shape and r.ndim == 1):
         raise ValueError("position, velocity and acceleration references must have the same shape (N,)")
-    out = np.empty((7, r.shape[0]))
+    out = np.empty((8, r.shape[0]))
     _run(r, v, a, np.ascontiguousarray(plant, dtype=np.float64),
          np.ascontiguousarray(controller, dtype=np.float64), int(n_sub), float(Ts), out)
     return out

@@ -116,6 +116,14 @@ class TuningOptions(BaseModel):
     backlash_threshold_deg: float = Field(0.01, ge=0, description="ε at or below this is 'no backlash' [deg]")
     backlash_time_constant_s: float | None = Field(None, gt=0, le=1.0, description="smoothing of the "
                                                    "compensation [s]; None = 1/K_p")
+    backlash_approach_filter: bool = Field(True, description="with backlash compensation, smooth the position "
+                                           "reference so that the load comes to rest on the driving flank "
+                                           "(first-order, backlash_approach_factor·J_l/B_l); off = faster, but the load "
+                                           "may stop anywhere in the gap")
+    backlash_approach_factor: float = Field(2.0, ge=1.0, le=10.0, description="reference filter time constant "
+                                            "as a multiple of the load's own decay time J_l/B_l [-]")
+    backlash_approach_max_s: float = Field(0.5, gt=0, le=2.0, description="longest reference filter time "
+                                           "constant the design will set [s]")
     # verification
     torque_limit_nm: float = Field(1.9, gt=0, description="torque limit of the verification runs [N·m]")
     velocity_step_rad_s: float = Field(5.0, gt=0, description="verification: velocity step [rad/s]")
@@ -241,6 +249,10 @@ class ControllerSettings:
     preset: Preset
     current_loop_bandwidth_hz: float | None = None
     computation_delay_samples: int = 0
+    reference_filter_time_constant_s: float = 0.0
+    """First-order position-reference filter [s] (0 = none): set with the backlash compensation,
+    it makes every move end slower than the load decays by itself, so the load rests on the
+    driving flank and the compensation is exact (YASKAWA Pn216)."""
     epsilon_rad: float = 0.0
     """Identified backlash half-width ε [rad]."""
     resonance_hz: float = math.nan
@@ -280,7 +292,8 @@ class ControllerSettings:
         return replace(self, notches=())
 
     def without_backlash_compensation(self) -> ControllerSettings:
-        return replace(self, backlash=replace(self.backlash, amount_rad=0.0))
+        """No offset and no reference filter (the filter is there for the compensation)."""
+        return replace(self, backlash=replace(self.backlash, amount_rad=0.0), reference_filter_time_constant_s=0.0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -608,6 +621,9 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
         notes.append(f"position gain limited by the anti-resonance ({md.f_antiresonance_hz:.1f} Hz)")
     amount = 2.0 * mdl.epsilon_rad if (mdl.backlash and opt.backlash_compensation) else 0.0
     tau_b = opt.backlash_time_constant_s if opt.backlash_time_constant_s is not None else 1.0 / kpos
+    tau_r, filter_note = 0.0, ""
+    if amount > 0.0 and opt.backlash_approach_filter:
+        tau_r, filter_note = approach_time_constant(p, kpos, opt)
     pm_req, gm_req = opt.requirements()
     settings = ControllerSettings(
         sample_rate_hz=opt.sample_rate_hz, motor_inertia_kg_m2=p.J_m, load_inertia_kg_m2=p.J_l,
@@ -618,7 +634,7 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
         margins=m_grid, margins_gap=mg_grid, required_phase_margin_deg=pm_req, required_gain_margin_db=gm_req,
         preset=opt.preset, current_loop_bandwidth_hz=opt.current_loop_bandwidth_hz,
         computation_delay_samples=opt.computation_delay_samples, epsilon_rad=mdl.epsilon_rad,
-        resonance_hz=md.f_resonance_hz, antiresonance_hz=md.f_antiresonance_hz,
+        reference_filter_time_constant_s=tau_r, resonance_hz=md.f_resonance_hz, antiresonance_hz=md.f_antiresonance_hz,
         candidates=tuple(candidates), notes=tuple(notes),
     )
     if settings.backlash.enabled:
@@ -627,10 +643,43 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
         model_plant = TruePlant.from_two_mass(p, mdl.epsilon_rad,
                                               current_loop_bandwidth_hz=opt.current_loop_bandwidth_hz)
         settings = choose_backlash_direction(settings, model_plant, opt)
+        if settings.backlash.enabled and filter_note:
+            settings = replace(settings, notes=settings.notes + (filter_note,))
     # the reported margins: python-control on the same loop
     m_ct = loop_margins(settings, p, gap=False)
     mg_ct = loop_margins(settings, p, gap=True) if mdl.backlash else None
     return replace(settings, margins=m_ct, margins_gap=mg_ct)
+
+
+def approach_time_constant(p: TwoMassParameters, kpos: float, opt: TuningOptions) -> tuple[float, str]:
+    """Time constant of the position-reference filter that lets the backlash compensation work [s],
+    and a note saying why.
+
+    After a move the compensation holds the motor ε ahead of the load's target: exact only if
+    the load rests on the driving flank. It does when the motor never decelerates faster than the
+    load does by itself; at the end of a first-order approach the deceleration is v/τ_r, the
+    load's own (viscous) v·B_l/J_l, so τ_r ≥ J_l/B_l keeps the flank in contact. A step of the
+    reference (velocity jump) makes the motor hit the load across the gap, and the load leaves with
+    up to 2·J_m/(J_m + J_l) < 2 times the motor's speed (elastic impact): with τ_r ≥ 2·J_l/B_l
+    (``backlash_approach_factor``, default 2) the motor still travels further than the load
+    coasts, and they meet again on the driving flank (measured over bench_tuning's plants:
+    factor 1.5 leaves the load up to 20 mrad off after a step, 2 within 0.2 mrad). Without
+    it a load without friction stops anywhere in the gap, and where depends on the move (the
+    compensation then helps on some moves and doubles the error on others). Load-side Coulomb
+    friction only helps (the bound is conservative then). Never shorter than 2/K_p (the
+    position loop's own lag); at most ``backlash_approach_max_s``.
+    """
+    decay = p.J_l / p.B_l if p.B_l > 0 else math.inf
+    want = opt.backlash_approach_factor * decay
+    tau = min(max(want, 2.0 / kpos), opt.backlash_approach_max_s)
+    why = (f"position reference filter {1e3 * tau:.1f} ms: {opt.backlash_approach_factor:g} × the load's own decay "
+           f"time J_l/B_l = {1e3 * decay:.1f} ms, so moves end with the load on the driving flank and the backlash "
+           f"compensation is exact (backlash_approach_filter: false for faster moves)")
+    if want > opt.backlash_approach_max_s:
+        why = (f"position reference filter {1e3 * tau:.1f} ms (capped by backlash_approach_max_s; the load's own decay "
+               f"time J_l/B_l is {1e3 * decay:.1f} ms, so a load without friction may still leave the driving flank "
+               f"at the end of a move)")
+    return tau, why
 
 
 # --------------------------------------------------------------------------------------------

@@ -68,7 +68,9 @@ def controller_json(settings: ControllerSettings, verification: Any | None = Non
             "loop_gain_hz": s.velocity_loop_gain_hz,
         },
         "position_loop": {"gain_per_s": s.position_gain_per_s,
-                          "bandwidth_hz": s.position_gain_per_s / (2.0 * math.pi)},
+                          "bandwidth_hz": s.position_gain_per_s / (2.0 * math.pi),
+                          "reference_filter_time_constant_s": s.reference_filter_time_constant_s,
+                          "reference_filter_time_constant_ms": 1e3 * s.reference_filter_time_constant_s},
         "torque_filter": {"time_constant_s": s.torque_filter_time_constant_s,
                           "time_constant_ms": 1e3 * s.torque_filter_time_constant_s,
                           "corner_hz": (1.0 / (2.0 * math.pi * s.torque_filter_time_constant_s)
@@ -146,6 +148,7 @@ def _si_values(s: ControllerSettings, reference_units_per_rev: float) -> dict[st
         "backlash_compensation_direction": (0.0 if s.backlash.direction == "forward" else 1.0, "count"),
         "backlash_compensation": (s.backlash.amount_rad, "rad"),
         "backlash_compensation_time": (s.backlash.time_constant_s, "s"),
+        "position_reference_filter_time": (s.reference_filter_time_constant_s, "s"),
     }
     if s.notches:  # without a notch the drive's notch settings are left alone (it may have its own)
         out["notch_switches"] = (float(notch_bits), "count")

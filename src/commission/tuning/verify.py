@@ -148,6 +148,8 @@ def controller_vector(settings: ControllerSettings, *, position_mode: bool, torq
          settings.velocity_feedforward, settings.torque_feedforward * settings.total_inertia_kg_m2, alpha_f,
          torque_limit_nm, 0.5 * settings.backlash.sign * settings.backlash.amount_rad, alpha_b, 1.0 if position_mode else 0.0,
          float(len(settings.notches)), float(settings.computation_delay_samples)]
+    tr = settings.reference_filter_time_constant_s
+    c.append(1.0 if tr <= 0 else 1.0 - math.exp(-Ts / tr))
     for n in settings.notches:
         b, a = notch_coefficients(n, Ts)
         c += [b[0], b[1], b[2], a[1], a[2]]
@@ -207,6 +209,7 @@ def _run(plant: TruePlant, settings: ControllerSettings, opt: TuningOptions, sce
     q_l = 2.0 * math.pi / 2.0**plant.encoder_bits_load
     t_pre = 0.01
     kpos = settings.position_gain_per_s
+    t_ref = 8.0 * settings.reference_filter_time_constant_s  # the reference filter's own settling
     if scenario == "velocity_step":
         dur = t_pre + min(2.0, max(0.1, 40.0 * settings.velocity_integral_time_s))
         n = int(round(dur / Ts))
@@ -227,7 +230,7 @@ def _run(plant: TruePlant, settings: ControllerSettings, opt: TuningOptions, sce
             limit_cycle_amplitude=amp, limit_cycle_frequency_hz=f, peak_torque_nm=float(np.max(np.abs(out[4]))),
             signals={"t": t, "motor_velocity": y, "load_velocity": out[3], "torque": out[4]})
     if scenario == "position_step":
-        dur = t_pre + min(3.0, max(0.25, 15.0 / kpos))
+        dur = t_pre + min(3.0, max(0.25, 15.0 / kpos)) + t_ref
         n = int(round(dur / Ts))
         t = np.arange(n) * Ts
         A = opt.position_step_rad
@@ -246,10 +249,11 @@ def _run(plant: TruePlant, settings: ControllerSettings, opt: TuningOptions, sce
             steady_state_error=abs(float(np.mean(xm[-tail:])) - target_m),
             load_error_rad=abs(float(np.mean(xl[-tail:])) - A),
             limit_cycle_amplitude=amp, limit_cycle_frequency_hz=f, peak_torque_nm=float(np.max(np.abs(out[4]))),
-            signals={"t": t, "motor_position": xm, "load_position": xl, "torque": out[4], "offset": out[6]})
+            signals={"t": t, "motor_position": xm, "load_position": xl, "torque": out[4], "offset": out[6],
+                     "reference_filtered": out[7]})
     if scenario == "position_move":
         n_move = int(round(opt.reversal_move_time_s / Ts))
-        n_dwell = int(round(min(1.0, max(0.2, 10.0 / kpos)) / Ts))
+        n_dwell = int(round((min(1.0, max(0.2, 10.0 / kpos)) + t_ref) / Ts))
         A = opt.position_step_rad
         p1, v1, a1 = _min_jerk(n_move, Ts, A)
         n0 = int(t_pre / Ts)
@@ -273,12 +277,12 @@ def _run(plant: TruePlant, settings: ControllerSettings, opt: TuningOptions, sce
             load_error_rad=abs(float(np.mean(xl[-tail:])) - A),
             limit_cycle_amplitude=amp, limit_cycle_frequency_hz=f, peak_torque_nm=float(np.max(np.abs(out[4]))),
             signals={"t": t, "reference": r, "motor_position": xm, "load_position": xl, "torque": out[4],
-                     "offset": out[6]})
+                     "offset": out[6], "reference_filtered": out[7]})
     if scenario == "reversal":
         # out, back, out again: the first move starts from the centred gap (an artificial start);
         # the figures come from the second and third moves, each after a reversal
         n_move = int(round(opt.reversal_move_time_s / Ts))
-        n_dwell = int(round(min(1.0, max(0.2, 10.0 / kpos)) / Ts))
+        n_dwell = int(round((min(1.0, max(0.2, 10.0 / kpos)) + t_ref) / Ts))
         A = opt.reversal_move_rad
         p1, v1, a1 = _min_jerk(n_move, Ts, A)
         n0 = int(t_pre / Ts)
@@ -300,14 +304,14 @@ def _run(plant: TruePlant, settings: ControllerSettings, opt: TuningOptions, sce
         i3 = i2 + n_move + n_dwell
         e3 = float(np.mean(xl[i3 - avg:i3])) - A  # same dwell as e2: a fair comparison
         amp, f = _limit_cycle(xl[-int(round(_CYCLE_WINDOW_S / Ts)):], Ts, 2.0 * q_l)
-        err_m = xm - r - out[6]
+        err_m = xm - out[7] - out[6]  # tracking of the (filtered) reference the loop follows
         return ScenarioResult(
             overshoot_pct=max(0.0, float(np.max(xm - out[6])) - A) / A * 100.0,
             settling_time_s=None, steady_state_error=float(np.max(np.abs(err_m))),
             load_error_rad=max(abs(e2), abs(e3)), limit_cycle_amplitude=amp, limit_cycle_frequency_hz=f,
             peak_torque_nm=float(np.max(np.abs(out[4]))), lost_motion_rad=abs(e3 - e2),
             signals={"t": t, "reference": r, "motor_position": xm, "load_position": xl, "torque": out[4],
-                     "offset": out[6]})
+                     "offset": out[6], "reference_filtered": out[7]})
     raise ValueError(f"unknown scenario '{scenario}'")
 
 
