@@ -92,6 +92,7 @@ __all__ = [
     "PlantParameters",
     "PlantResponse",
     "PlantState",
+    "integrate_sample",
 ]
 
 #: RK4 sub-steps per sample (the minimum; stiffer plants get more, see MAX_RATE_STEP).
@@ -525,6 +526,14 @@ def _simulate(
         s[_TC] = u + c
 
 
+#: The per-sample integrator, for loops compiled elsewhere that run their own controller around
+#: this plant (commission.tuning.closedloop): ``integrate_sample(s, u, c, n_sub, Ts, p, True)``
+#: advances the state s (layout: x_m, v_m, x_s, v_l, τ, mode, ...; ``_STATE_SIZE`` floats) by one
+#: sample under torque u + c·exp(−ω_c·t) and returns the current-loop deviation c at its end;
+#: p and n_sub are a Plant's ``kernel_parameters``.
+integrate_sample = _integrate_sample
+
+
 def _fastest_contact_rate(params: PlantParameters) -> float:
     """Largest |eigenvalue| [1/s] of the linear two-mass plant in contact."""
     a = np.array(
@@ -597,6 +606,11 @@ class Plant:
         )
         self._s = np.zeros(_STATE_SIZE)
         self.reset()
+
+    @property
+    def kernel_parameters(self) -> tuple[NDArray[np.float64], int]:
+        """(parameter vector, RK4 sub-steps per sample) for :func:`integrate_sample`."""
+        return self._p.copy(), self.substeps_per_sample
 
     def reset(self) -> None:
         """At rest at position 0, twist 0 (centre of the gap), current loop at 0 N·m,

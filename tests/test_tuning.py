@@ -74,8 +74,9 @@ def test_closed_loop_simulator_matches_the_plant_pi_loop() -> None:
     s = ControllerSettings(FS, pp.J_m, pp.J_l, kp, kp / ki, 0.0, 1.0, 0.0, (), 0.0, 0.0,
                            BacklashCompensation(0.0, 0.01), m, None, 45.0, 8.0, Preset.STANDARD)
     tp = TruePlant.from_plant_parameters(pp)
-    out = simulate_closed_loop(tp.vector(), controller_vector(s, position_mode=False, torque_limit_nm=lim),
-                               tp.substeps(1 / FS), 1 / FS, np.zeros(n), v_ref, np.zeros(n))
+    pv, n_sub = tp.kernel(1 / FS)
+    out = simulate_closed_loop(pv, controller_vector(s, position_mode=False, torque_limit_nm=lim),
+                               n_sub, 1 / FS, np.zeros(n), v_ref, np.zeros(n))
     q = 2 * math.pi / 2**24
     # same integrator scheme, same quantiser: positions agree to the encoder step
     assert np.max(np.abs(out[0] - ref.motor_position)) <= 1.01 * q

@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..ident.twomass import TwoMassParameters
-from .closedloop import MAX_NOTCHES, simulate_closed_loop, substeps
+from .closedloop import MAX_NOTCHES, simulate_closed_loop
 from .design import ControllerSettings, LoopMargins, TuningOptions, loop_margins, notch_coefficients
 
 __all__ = ["ScenarioResult", "TruePlant", "Verification", "verify"]
@@ -67,17 +67,21 @@ class TruePlant:
     def from_two_mass(cls, params: TwoMassParameters, epsilon_rad: float, **extras: Any) -> TruePlant:
         return cls(params=params, epsilon_rad=float(epsilon_rad), **extras)
 
-    def vector(self) -> NDArray[np.float64]:
-        p = self.params
-        wc = 0.0 if self.current_loop_bandwidth_hz is None else 2.0 * math.pi * self.current_loop_bandwidth_hz
-        return np.array([p.J_m, p.J_l, p.B_m, p.B_l, p.K, p.D, self.epsilon_rad, self.coulomb_motor_nm,
-                         self.coulomb_load_nm, self.coulomb_velocity_scale_rad_s, wc,
-                         2.0 * math.pi / 2.0**self.encoder_bits_motor, 2.0 * math.pi / 2.0**self.encoder_bits_load])
+    def plant_parameters(self) -> Any:
+        """The same machine as ``sim_drive.plant.PlantParameters`` (no noise)."""
+        from sim_drive.plant import PlantParameters
 
-    def substeps(self, Ts: float) -> int:
-        p = self.params
-        return substeps(p.J_m, p.J_l, p.B_m, p.B_l, p.K, p.D, self.current_loop_bandwidth_hz,
-                        max(self.coulomb_motor_nm, self.coulomb_load_nm), self.coulomb_velocity_scale_rad_s, Ts)
+        return PlantParameters(**self.params.as_dict(), epsilon_deg=math.degrees(self.epsilon_rad),
+                               coulomb_motor_nm=self.coulomb_motor_nm, coulomb_load_nm=self.coulomb_load_nm,
+                               coulomb_velocity_scale_rad_s=self.coulomb_velocity_scale_rad_s,
+                               current_loop_bandwidth_hz=self.current_loop_bandwidth_hz,
+                               encoder_bits_motor=self.encoder_bits_motor, encoder_bits_load=self.encoder_bits_load)
+
+    def kernel(self, Ts: float) -> tuple[NDArray[np.float64], int]:
+        """(parameter vector, sub-steps per sample) of the simulated drive's integrator."""
+        from sim_drive.plant import Plant
+
+        return Plant(self.plant_parameters(), 1.0 / Ts).kernel_parameters
 
 
 @dataclass(frozen=True)
@@ -203,8 +207,7 @@ def _limit_cycle(y: NDArray[np.float64], Ts: float, floor: float) -> tuple[float
 
 def _run(plant: TruePlant, settings: ControllerSettings, opt: TuningOptions, scenario: str) -> ScenarioResult:
     Ts = 1.0 / settings.sample_rate_hz
-    pv = plant.vector()
-    n_sub = plant.substeps(Ts)
+    pv, n_sub = plant.kernel(Ts)
     q_m = 2.0 * math.pi / 2.0**plant.encoder_bits_motor
     q_l = 2.0 * math.pi / 2.0**plant.encoder_bits_load
     t_pre = 0.01
