@@ -5,7 +5,8 @@ For each plant (bench/bench_identify.py's cases: J_l/J_m 0.2–5, resonance 20�
 simulated, identified (hybrid), the controller designed on the identification and verified
 on the TRUE plant (sim_drive parameters, backlash included). Printed: the velocity-loop gain
 K_v, the −3 dB bandwidth on the identified model and the crossover on the true plant, the
-margins on the true plant (contact and gap = motor alone), the velocity step's overshoot, and —
+margins on the true plant (contact and gap = motor alone; posGM: the position loop's gain
+margin around the closed velocity loop), the velocity step's overshoot, and —
 with/without backlash compensation (with it: the offset 2ε and the position-reference filter that
 makes moves end with the load on the driving flank) — the position step's overshoot, settling
 time and load error, the load error after a smooth move from the centred gap, the lost motion of out-back-out moves and the
@@ -80,7 +81,7 @@ def main() -> None:
     print(f"design on: {'true parameters' if args.true else 'hybrid identification'}; preset {args.preset}; "
           f"verification on the true plant (backlash, friction, lag included)")
     head = (f"{'plant':20s} {'ε°':>4s} {'notch':>5s} {'Kv Hz':>6s} {'bw Hz':>5s} {'wc Hz':>5s} {'PM°':>5s} {'GM dB':>5s} "
-            f"{'gapPM':>5s} {'gapGM':>5s} {'vstep ov%':>9s} {'step ov% on/off':>15s} {'step ts ms on/off':>17s} "
+            f"{'gapPM':>5s} {'gapGM':>5s} {'posGM':>5s} {'vstep ov%':>9s} {'step ov% on/off':>15s} {'step ts ms on/off':>17s} "
             f"{'step err µrad on/off':>20s} {'move err µrad on/off':>20s} {'lost motion µrad on/off':>23s} {'cycle µrad on/off':>17s} "
             f"{'comp':>4s} {'ready':>5s} {'s':>4s}")
     print(head)
@@ -116,6 +117,7 @@ def main() -> None:
         print(f"{c.name:20s} {c.eps_deg:4.2f} {notch:>5s} {s.velocity_loop_gain_hz:6.1f} {s.velocity_bandwidth_hz:5.0f} "
               f"{v.margins.crossover_hz:5.0f} {v.margins.phase_margin_deg:5.1f} {v.margins.gain_margin_db:5.1f} "
               f"{_fmt(gap.phase_margin_deg if gap else None):>5s} {_fmt(gap.gain_margin_db if gap else None):>5s} "
+              f"{_fmt(v.position_margins.gain_margin_db):>5s} "
               f"{on['velocity_step'].overshoot_pct:9.1f} {pair('position_step', 'overshoot_pct', 1, 1):>15s} "
               f"{pair('position_step', 'settling_time_s', 1e3, 1):>17s} "
               f"{pair('position_step', 'load_error_rad', 1e6):>20s} {pair('position_move', 'load_error_rad', 1e6):>20s} {pair('reversal', 'lost_motion_rad', 1e6):>23s} "

@@ -182,6 +182,34 @@ def test_without_the_filter_the_design_still_chooses_what_helps_on_the_model() -
     assert any("backlash compensation" in n for n in s.notes)
 
 
+def test_position_loop_margins() -> None:
+    """The position loop around the closed velocity loop: crossover at K_p/2π (the fast velocity
+    loop makes it an integrator there), and the reported gain margin is where it goes unstable:
+    checked by the roots of 1 + g·L(z) = 0 (numpy), not through python-control's margins."""
+    import control as ct
+
+    from commission.tuning.design import _loop_tf
+
+    s, v = _reference()
+    pm = s.position_margins
+    assert pm is not None and pm.stable and pm.phase_margin_deg > 60.0
+    assert pm.crossover_hz == pytest.approx(s.position_gain_per_s / (2 * math.pi), rel=0.05)
+    Ts = 1 / FS
+    L = s.position_gain_per_s * ct.tf([Ts, 0.0], [1.0, -1.0], Ts) * ct.feedback(_loop_tf(s, IDENTIFIED, gap=False), 1)
+    num, den = np.ravel(L.num[0][0]), np.ravel(L.den[0][0])
+    g = 10 ** (pm.gain_margin_db / 20)
+
+    def radius(k: float) -> float:
+        n = np.zeros(max(num.size, den.size))
+        n[-num.size:] = k * num
+        d = np.zeros_like(n)
+        d[-den.size:] = den
+        return float(np.max(np.abs(np.roots(d + n))))
+
+    assert radius(0.97 * g) < 1.0 < radius(1.03 * g)
+    assert v.position_margins.stable and v.as_dict()["position_margins"]["phase_margin_deg"] > 60.0
+
+
 def test_no_compensation_without_backlash() -> None:
     s = design(REFERENCE_PLANT, TuningOptions(), epsilon_rad=0.0)
     assert not s.backlash.enabled and s.margins_gap is None

@@ -247,6 +247,8 @@ class ControllerSettings:
     required_phase_margin_deg: float
     required_gain_margin_db: float
     preset: Preset
+    position_margins: LoopMargins | None = None
+    """Of the position loop around the closed velocity loop, on the identified model (contact)."""
     current_loop_bandwidth_hz: float | None = None
     computation_delay_samples: int = 0
     reference_filter_time_constant_s: float = 0.0
@@ -648,7 +650,8 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
     # the reported margins: python-control on the same loop
     m_ct = loop_margins(settings, p, gap=False)
     mg_ct = loop_margins(settings, p, gap=True) if mdl.backlash else None
-    return replace(settings, margins=m_ct, margins_gap=mg_ct)
+    return replace(settings, margins=m_ct, margins_gap=mg_ct,
+                   position_margins=loop_margins(settings, p, loop="position"))
 
 
 def approach_time_constant(p: TwoMassParameters, kpos: float, opt: TuningOptions) -> tuple[float, str]:
@@ -700,17 +703,24 @@ def _loop_tf(settings: ControllerSettings, p: TwoMassParameters, *, gap: bool, n
 
 
 def loop_margins(settings: ControllerSettings, plant: TwoMassParameters, *, gap: bool = False,
-                 notches: bool = True) -> LoopMargins:
-    """Margins of the velocity loop of ``settings`` around ``plant`` (python-control).
+                 notches: bool = True, loop: Literal["velocity", "position"] = "velocity") -> LoopMargins:
+    """Margins of the velocity loop (or, ``loop="position"``, of the position loop around the
+    closed velocity loop) of ``settings`` around ``plant`` (python-control).
 
-    ``gap=True``: the motor alone (gears apart). The loop is evaluated on a dense grid
-    (``control.frd``) and ``control.stability_margins`` finds every crossing; the phase
-    margin is the smallest over all gain crossovers, the gain margin the smallest over the
-    phase crossovers with |L| < 1; stability from the closed-loop poles (``control.feedback``).
+    ``gap=True``: the motor alone (gears apart). The position loop is exact in discrete time:
+    the drive's velocity is the backward difference of the position it measures, so
+    x̂_m = Ts·z/(z − 1)·v̂_m and L_pos = K_p·Ts·z/(z − 1)·T_v(z) with T_v the closed velocity loop.
+    The loop is evaluated on a dense grid (``control.frd``) and ``control.stability_margins``
+    finds every crossing; the phase margin is the smallest over all gain crossovers, the gain
+    margin the smallest over the phase crossovers with |L| < 1; stability from the
+    closed-loop poles (``control.feedback``).
     """
     import control as ct
 
     L = _loop_tf(settings, plant, gap=gap, notches=notches)
+    if loop == "position":
+        Ts = L.dt
+        L = settings.position_gain_per_s * ct.tf([Ts, 0.0], [1.0, -1.0], Ts) * ct.feedback(L, 1)
     w = 2.0 * math.pi * np.geomspace(0.05, 0.4999 * settings.sample_rate_hz, 1500)
     resp = L(np.exp(1j * w * L.dt))
     with warnings.catch_warnings():

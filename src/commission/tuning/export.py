@@ -70,7 +70,8 @@ def controller_json(settings: ControllerSettings, verification: Any | None = Non
         "position_loop": {"gain_per_s": s.position_gain_per_s,
                           "bandwidth_hz": s.position_gain_per_s / (2.0 * math.pi),
                           "reference_filter_time_constant_s": s.reference_filter_time_constant_s,
-                          "reference_filter_time_constant_ms": 1e3 * s.reference_filter_time_constant_s},
+                          "reference_filter_time_constant_ms": 1e3 * s.reference_filter_time_constant_s,
+                          "margins": None if s.position_margins is None else s.position_margins.as_dict()},
         "torque_filter": {"time_constant_s": s.torque_filter_time_constant_s,
                           "time_constant_ms": 1e3 * s.torque_filter_time_constant_s,
                           "corner_hz": (1.0 / (2.0 * math.pi * s.torque_filter_time_constant_s)

@@ -121,6 +121,8 @@ class Verification:
 
     margins: LoopMargins
     margins_gap: LoopMargins | None
+    position_margins: LoopMargins
+    """Of the position loop around the closed velocity loop, on the verification plant (contact)."""
     runs: dict[str, dict[str, ScenarioResult]]
     """configuration ("proposed", "without_notch", "without_backlash_compensation") → scenario → result."""
     ready: bool
@@ -133,6 +135,7 @@ class Verification:
             "reasons": list(self.reasons),
             "margins": self.margins.as_dict(),
             "margins_gap": None if self.margins_gap is None else self.margins_gap.as_dict(),
+            "position_margins": self.position_margins.as_dict(),
             "plant": {**self.plant.params.as_dict(), "epsilon_rad": self.plant.epsilon_rad,
                       "current_loop_bandwidth_hz": self.plant.current_loop_bandwidth_hz},
             "runs": {cfg: {sc: r.as_dict() for sc, r in runs.items()} for cfg, runs in self.runs.items()},
@@ -385,6 +388,7 @@ def verify(settings: ControllerSettings, plant: Any, options: TuningOptions | No
     s_true = replace(settings, current_loop_bandwidth_hz=tp.current_loop_bandwidth_hz)
     m = loop_margins(s_true, tp.params)
     mg = loop_margins(s_true, tp.params, gap=True) if tp.epsilon_rad > 0 else None
+    mp = loop_margins(s_true, tp.params, loop="position")
     configs: dict[str, ControllerSettings] = {"proposed": settings}
     if compare and settings.notches:
         configs["without_notch"] = settings.without_notch()
@@ -402,10 +406,13 @@ def verify(settings: ControllerSettings, plant: Any, options: TuningOptions | No
             reasons.append(f"phase margin {mm.phase_margin_deg:.1f}° < {pm_req:g}° ({label})")
         if mm.gain_margin_db < gm_req:
             reasons.append(f"gain margin {mm.gain_margin_db:.1f} dB < {gm_req:g} dB ({label})")
+    if not mp.stable:
+        reasons.append("position loop unstable on the verification plant")
     for sc, r in runs["proposed"].items():
         if sc != "velocity_step" and r.limit_cycle_amplitude > opt.max_limit_cycle_rad:
             reasons.append(f"{sc}: load limit cycle {r.limit_cycle_amplitude:.2e} rad > {opt.max_limit_cycle_rad:.2e} rad"
                            + (f" at {r.limit_cycle_frequency_hz:.1f} Hz" if r.limit_cycle_frequency_hz else ""))
         if r.settling_time_s is None and sc in ("velocity_step", "position_step"):
             reasons.append(f"{sc}: does not settle within the run")
-    return Verification(margins=m, margins_gap=mg, runs=runs, ready=not reasons, reasons=tuple(reasons), plant=tp)
+    return Verification(margins=m, margins_gap=mg, position_margins=mp, runs=runs, ready=not reasons,
+                        reasons=tuple(reasons), plant=tp)
