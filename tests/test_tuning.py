@@ -210,6 +210,26 @@ def test_position_loop_margins() -> None:
     assert v.position_margins.stable and v.as_dict()["position_margins"]["phase_margin_deg"] > 60.0
 
 
+def test_identified_current_loop_and_friction_are_used() -> None:
+    """An identification that kept a current-loop lag and Coulomb friction (issue #8's terms):
+    the design uses the lag unless the configuration gives the drive's own figure, and the
+    verification on the identified model (a real axis) includes both."""
+    from types import SimpleNamespace
+
+    ident = SimpleNamespace(parameters=IDENTIFIED, epsilon_rad=EPS_ID, backlash_detected=True,
+                            current_loop={"bandwidth_hz": 1000.0},
+                            friction={"velocity_scale_rad_s": 1e-3, "motor_nm": 0.01, "load_nm": 0.01})
+    s = design(ident, TuningOptions())
+    assert s.current_loop_bandwidth_hz == 1000.0
+    assert any("from the identification" in n for n in s.notes)
+    ideal, _ = _reference()
+    assert s.velocity_gain < 0.8 * ideal.velocity_gain  # the lag costs phase: a lower gain
+    assert design(ident, TuningOptions(current_loop_bandwidth_hz=2000.0)).current_loop_bandwidth_hz == 2000.0
+    v = verify(s, ident, scenarios=("position_step",))
+    assert v.plant.coulomb_load_nm == 0.01 and v.plant.current_loop_bandwidth_hz == 1000.0
+    assert v.margins.phase_margin_deg >= 45.0
+
+
 def test_no_compensation_without_backlash() -> None:
     s = design(REFERENCE_PLANT, TuningOptions(), epsilon_rad=0.0)
     assert not s.backlash.enabled and s.margins_gap is None

@@ -69,7 +69,7 @@ def tune_and_export(out_dir: Path, identification: Any, options: Any, descriptio
     if true_plant is not None:
         verification = verify(settings, true_plant, options)
     else:
-        verification = verify(settings, identification.parameters, options, epsilon_rad=identification.epsilon_rad)
+        verification = verify(settings, identification, options)
     files = write_controller_files(out_dir, settings, verification, description)
     return TuningOutcome(settings, verification, controller_json(settings, verification), files)
 

@@ -563,6 +563,9 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
     """Controller settings from an :class:`~commission.ident.hybrid.Identification` (or
     :class:`TwoMassParameters` and ``epsilon_rad``), by the rule of the module docstring.
 
+    A current-loop lag the identification kept is designed for when
+    ``options.current_loop_bandwidth_hz`` is not set (a value entered there wins).
+
     :raises TuningError: the model is not physical, or no gain meets the margins.
     """
     opt = options or TuningOptions()
@@ -570,6 +573,12 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
     p = mdl.params
     _check_params(p)
     md = modes(p)
+    first_notes: list[str] = []
+    identified_cl = (getattr(model, "current_loop", None) or {}).get("bandwidth_hz")
+    if opt.current_loop_bandwidth_hz is None and identified_cl:
+        opt = opt.model_copy(update={"current_loop_bandwidth_hz": float(identified_cl)})
+        first_notes.append(f"current-loop bandwidth {float(identified_cl):.0f} Hz from the identification "
+                           "(tuning.current_loop_bandwidth_hz not set)")
     loop = _loop_plants(p, mdl.backlash, opt)
     notch_options: list[tuple[Notch, ...]] = []
     if opt.notch in ("auto", "off"):
@@ -592,7 +601,7 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
         pm_req, gm_req = opt.requirements()
         raise TuningError(f"no velocity-loop gain meets PM ≥ {pm_req:g}° and GM ≥ {gm_req:g} dB on the identified "
                           f"model (resonance {md.f_resonance_hz:.1f} Hz, J_l/J_m {p.J_l / p.J_m:.2f})")
-    notes: list[str] = []
+    notes: list[str] = first_notes
     chosen: tuple[Notch, ...] = ()
     if opt.notch == "on" or () not in best:
         chosen = next(k for k in best if k)
@@ -642,8 +651,7 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
     if settings.backlash.enabled:
         from .verify import TruePlant, choose_backlash_direction
 
-        model_plant = TruePlant.from_two_mass(p, mdl.epsilon_rad,
-                                              current_loop_bandwidth_hz=opt.current_loop_bandwidth_hz)
+        model_plant = TruePlant.from_model(model, mdl.epsilon_rad, opt.current_loop_bandwidth_hz)
         settings = choose_backlash_direction(settings, model_plant, opt)
         if settings.backlash.enabled and filter_note:
             settings = replace(settings, notes=settings.notes + (filter_note,))

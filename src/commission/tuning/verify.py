@@ -67,6 +67,18 @@ class TruePlant:
     def from_two_mass(cls, params: TwoMassParameters, epsilon_rad: float, **extras: Any) -> TruePlant:
         return cls(params=params, epsilon_rad=float(epsilon_rad), **extras)
 
+    @classmethod
+    def from_model(cls, model: Any, epsilon_rad: float, current_loop_bandwidth_hz: float | None) -> TruePlant:
+        """The identified model as a plant: an Identification brings the Coulomb friction it kept
+        (``friction`` section); a bare :class:`TwoMassParameters` has none."""
+        params = model if isinstance(model, TwoMassParameters) else model.parameters
+        fr = getattr(model, "friction", None) or {}
+        extras: dict[str, Any] = {"current_loop_bandwidth_hz": current_loop_bandwidth_hz}
+        if fr:
+            extras.update(coulomb_motor_nm=float(fr.get("motor_nm", 0.0)), coulomb_load_nm=float(fr.get("load_nm", 0.0)),
+                          coulomb_velocity_scale_rad_s=float(fr.get("velocity_scale_rad_s", 1e-3)))
+        return cls(params=params, epsilon_rad=float(epsilon_rad), **extras)
+
     def plant_parameters(self) -> Any:
         """The same machine as ``sim_drive.plant.PlantParameters`` (no noise)."""
         from sim_drive.plant import PlantParameters
@@ -374,14 +386,15 @@ def verify(settings: ControllerSettings, plant: Any, options: TuningOptions | No
            epsilon_rad: float | None = None, scenarios: tuple[str, ...] = SCENARIOS,
            compare: bool = True) -> Verification:
     """Verify ``settings`` on ``plant``: a :class:`TruePlant`, a ``sim_drive`` PlantParameters
-    (the true machine of a simulation) or a :class:`TwoMassParameters` with ``epsilon_rad``
-    (the identified model, on a real axis)."""
+    (the true machine of a simulation), or on a real axis the identified model: an
+    Identification (with the friction it kept) or a :class:`TwoMassParameters` with ``epsilon_rad``.
+    The model's current loop is the one the settings were designed for."""
     opt = options or TuningOptions()
     if isinstance(plant, TruePlant):
         tp = plant
-    elif isinstance(plant, TwoMassParameters):
-        tp = TruePlant.from_two_mass(plant, float(epsilon_rad or 0.0),
-                                     current_loop_bandwidth_hz=settings.current_loop_bandwidth_hz)
+    elif isinstance(plant, TwoMassParameters) or isinstance(getattr(plant, "parameters", None), TwoMassParameters):
+        eps = epsilon_rad if epsilon_rad is not None else getattr(plant, "epsilon_rad", 0.0)
+        tp = TruePlant.from_model(plant, float(eps or 0.0), settings.current_loop_bandwidth_hz)
     else:
         tp = TruePlant.from_plant_parameters(plant)
     # margins on the verification plant, with its own current loop
