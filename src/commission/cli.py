@@ -318,8 +318,9 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
             drive.close()
             raise ConfigError(problem)
     if not args.sim and not args.no_tune and config.tuning.current_loop_bandwidth_hz is None:
-        warnings.warn("tuning assumes an ideal current loop: set tuning.current_loop_bandwidth_hz to the drive's "
-                      "for margins that hold on the real axis", stacklevel=1)
+        warnings.warn("tuning assumes an ideal current loop unless the identifier finds its lag: set "
+                      "tuning.current_loop_bandwidth_hz to the drive's for margins that hold on the real axis",
+                      stacklevel=1)
     config = config.model_copy(update={"tuning": _tuning_options(config, args)})
     true_plant = None
     if args.sim:
