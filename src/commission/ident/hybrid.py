@@ -52,6 +52,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, Literal
@@ -363,7 +364,12 @@ def identify(recording: Recording, options: IdentificationOptions | None = None,
     if opt.method is Method.PAPER:
         result = _identify_paper(recording, opt, _Stages(progress))
     else:
-        result = _identify_hybrid(recording, opt, _Stages(progress))
+        from threadpoolctl import threadpool_limits
+
+        # one BLAS thread: the pipeline's LAPACK calls are small and run from two threads at
+        # once (see commission.ident.jointfit._one_blas_thread)
+        with threadpool_limits(limits=1, user_api="blas"):
+            result = _identify_hybrid(recording, opt, _Stages(progress))
     if note is not None:
         result.notes.insert(0, note)
     if progress is not None:
@@ -611,15 +617,19 @@ def _robust_start(rec: Recording, opt: IdentificationOptions, fit: Any, problem:
             return start, how, {}
     except IdentificationError:
         pass
-    for f_lo in (1.0, 2.0, 5.0, 10.0):
-        if f_lo <= opt.band_hz[0] or f_lo >= 0.1 * opt.band_hz[1]:
-            continue
+    def raised(f_lo: float) -> Any:
         try:
-            _, f2 = _frd_and_fit(rec, opt.model_copy(update={"band_hz": (f_lo, opt.band_hz[1])}),
-                                 _Stages(None), [])
-            fits.append((f_lo, f2))
+            return _frd_and_fit(rec, opt.model_copy(update={"band_hz": (f_lo, opt.band_hz[1])}),
+                                _Stages(None), [])[1]
         except IdentificationError:
-            continue
+            return None
+
+    # the fits are independent: on opt.threads threads (same results, in the same order)
+    edges = [f for f in (1.0, 2.0, 5.0, 10.0) if opt.band_hz[0] < f < 0.1 * opt.band_hz[1]]
+    with ThreadPoolExecutor(max_workers=max(1, min(opt.threads, len(edges) or 1))) as pool:
+        for f_lo, f2 in zip(edges, pool.map(raised, edges)):
+            if f2 is not None:
+                fits.append((f_lo, f2))
     scored: list[tuple[float, float, Any, str]] = []
     for f_lo, f in fits:
         try:

@@ -22,7 +22,9 @@ of a light load with backlash) never recovered.
 2. **Joint fit** (:func:`joint_fit`). From the best cells in turn,
    ``scipy.optimize.least_squares`` (trf, bounds) on the three log-rates and ε ≥ 0
    in degrees; finite-difference columns on two threads (the compiled
-   simulation releases the GIL). Two starts that agree end the loop. A start that
+   simulation releases the GIL), the first column of each new point computed on the
+   second core while least_squares evaluates the point itself (speculation: same results,
+   three rounds of simulations per iteration instead of four); one BLAS thread throughout. Two starts that agree end the loop. A start that
    stalls far above the noise floor is paused and only continued (exactly where it
    stopped) when it could be the best or agree with another start, so the result is
    that of running every start to its end. Then chaotic impact bursts are dropped
@@ -48,15 +50,19 @@ not in it.
 
 from __future__ import annotations
 
+import functools
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import OptimizeResult, least_squares
+from threadpoolctl import threadpool_limits
 
 from ..exceptions import IdentificationError
 from .residual import ResidualProblem, simulate_load, _filtfilt_decimate
@@ -78,12 +84,26 @@ __all__ = [
     "joint_fit",
 ]
 
+T = TypeVar("T")
+
 _PARAM_NAMES = ("J_m", "J_l", "B_m", "B_l", "K", "D")
 #: Forward-difference steps: relative (log-parameters) and absolute for ε [deg].
 _FD_LOG_STEP = 1e-6
 _FD_EPS_STEP_DEG = 1e-5
 #: Upper bound of the current-loop time constant in the fit [µs] (a 32 Hz loop).
 _LAG_MAX_US = 5000.0
+
+
+def _one_blas_thread(fn: Callable[..., T]) -> Callable[..., T]:
+    """Run ``fn`` with one BLAS thread. The fits call small LAPACK problems (lstsq on a few
+    columns, trf's SVD) from two threads at once; OpenBLAS's own threads then spin against
+    them. Measured (bench/bench_identify.py, reference +lag1k): 10.3 s → 5.7 s of CPU, same
+    result."""
+    @functools.wraps(fn)
+    def wrapped(*args: object, **kwargs: object) -> T:
+        with threadpool_limits(limits=1, user_api="blas"):
+            return fn(*args, **kwargs)
+    return wrapped
 
 
 # ----------------------------------------------------------------------------
@@ -375,6 +395,7 @@ def _distinct_best(cells: Sequence[SearchCell], n: int, min_sep_rad: float) -> t
     return tuple(out)
 
 
+@_one_blas_thread
 def search_starts(
     problem: ResidualProblem,
     start: TwoMassParameters,
@@ -637,15 +658,27 @@ def _fd_jacobian(fun: Callable[[NDArray[np.float64]], NDArray[np.float64]], th: 
                  f0: NDArray[np.float64], steps: NDArray[np.float64], upper: NDArray[np.float64],
                  pool: ThreadPoolExecutor) -> NDArray[np.float64]:
     def col(i: int) -> NDArray[np.float64]:
-        h = steps[i]
-        if th[i] + h > upper[i]:
-            h = -h
-        t = th.copy()
-        t[i] += h
+        t, h = _fd_point(th, i, steps, upper)
         return (fun(t) - f0) / h
     return np.stack(list(pool.map(col, range(th.size))), axis=1)
 
 
+#: "the mask in force" (default of the joint fit's projected residual).
+_CURRENT = object()
+
+
+def _fd_point(th: NDArray[np.float64], i: int, steps: NDArray[np.float64],
+              upper: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+    """The point of the i-th forward-difference column of :func:`_fd_jacobian` and its step."""
+    h = steps[i]
+    if th[i] + h > upper[i]:
+        h = -h
+    t = th.copy()
+    t[i] += h
+    return t, h
+
+
+@_one_blas_thread
 def joint_fit(
     problem: ResidualProblem,
     start: TwoMassParameters,
@@ -708,7 +741,8 @@ def joint_fit(
             except (KeyError, RuntimeError, StopIteration):  # another thread got there first
                 break
 
-    def pfit(th: NDArray[np.float64]) -> ProjectedFit:
+    def pfit(th: NDArray[np.float64], keep: object = _CURRENT) -> ProjectedFit:
+        keep = mask[0] if keep is _CURRENT else keep
         rates, eps, q, lag = unpack(th)
         n_sim = 4 + int(tm.coulomb_load)
         skey = np.asarray(th[:n_sim], dtype=np.float64).tobytes()
@@ -721,17 +755,52 @@ def joint_fit(
             target = problem.lagged_torque_f(lag)
             _remember(targets, lag, target, 16)
         return _project(problem, rates, resp[0], resp[1], target, load_weight_nm_per_rad=w,
-                        keep=mask[0], coulomb_motor=tm.coulomb_motor)
+                        keep=keep, coulomb_motor=tm.coulomb_motor)
+
+    # Speculation (two threads or more): while least_squares evaluates a new point on its own
+    # thread, the second core computes the first finite-difference column at that point (trf
+    # asks for the Jacobian at every accepted point, and most points are accepted). Results
+    # are identical; a rejected point wastes only the otherwise idle core. Speculative
+    # evaluations are counted when used.
+    speculate = threads >= 2
+    pending: dict[bytes, tuple[object, Future]] = {}
+    lock = threading.Lock()
+
+    def _speculative(t: NDArray[np.float64], m: object) -> NDArray[np.float64]:
+        return pfit(t, m).residual
 
     def fun(th: NDArray[np.float64]) -> NDArray[np.float64]:
         key = np.asarray(th, dtype=np.float64).tobytes()
         hit = resids.get(key)
         if hit is not None and hit[0] is mask[0]:
             return hit[1]
+        with lock:
+            pend = pending.pop(key, None)
         counter.n += 1
-        r = pfit(th).residual
+        if pend is not None and pend[0] is mask[0]:
+            r = pend[1].result()
+        else:
+            r = pfit(th).residual
         _remember(resids, key, (mask[0], r), 16)
         return r
+
+    def primary(hi_: NDArray[np.float64]) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
+        """The residual as least_squares calls it: speculates the first Jacobian column."""
+        def f(th: NDArray[np.float64]) -> NDArray[np.float64]:
+            if speculate:
+                key = np.asarray(th, dtype=np.float64).tobytes()
+                hit = resids.get(key)
+                if hit is None or hit[0] is not mask[0]:
+                    t, _ = _fd_point(np.asarray(th, dtype=np.float64), 0, steps, hi_)
+                    tkey = t.tobytes()
+                    m = mask[0]
+                    with lock:
+                        if tkey not in pending:
+                            pending[tkey] = (m, pool.submit(_speculative, t, m))
+                            while len(pending) > 8:
+                                del pending[next(iter(pending))]
+            return fun(th)
+        return f
 
     steps = np.array([_FD_LOG_STEP] * 3 + [_FD_EPS_STEP_DEG] + [1e-4] * (n_th - 4))
     eps_max_deg = math.degrees(epsilon_max_rad)
@@ -775,7 +844,7 @@ def joint_fit(
             # could reach consensus with it and is continued at once; any other paused start
             # cannot, so the consensus check is made only when the two best starts have ended.
             try:
-                run = _Start(fun, th0, jac, lo, hi, max_nfev, stop_cost_nm)
+                run = _Start(primary(hi), th0, jac, lo, hi, max_nfev, stop_cost_nm)
             except BaseException:
                 for e in entries:
                     if e[1] is None:
@@ -833,7 +902,7 @@ def joint_fit(
             def jac2(t: NDArray[np.float64], *_: object, _hi: NDArray[np.float64] = hi) -> NDArray[np.float64]:
                 return _fd_jacobian(fun, t, fun(t), steps, _hi, pool)
 
-            sol = _least_squares(fun, np.clip(th, lo, hi), jac2, lo, hi, max_nfev)
+            sol = _least_squares(primary(hi), np.clip(th, lo, hi), jac2, lo, hi, max_nfev)
             th = sol.x
         pf = pfit(th)
         counter.n += 1

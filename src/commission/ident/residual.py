@@ -77,7 +77,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
-from scipy.signal import butter, lfilter, sosfilt_zi, sosfiltfilt
+from scipy.signal import butter, sosfilt_zi, sosfiltfilt
 
 from ..exceptions import IdentificationError
 
@@ -103,8 +103,11 @@ _HERMITE_BOUND = 0.15
 
 # ----------------------------------------------------------------------------
 # compiled core (module level so that numba's cache=True works)
+# error_model="numpy": no Python division checks in the loops; the step functions inlined.
+# Same arithmetic, bit-identical results; measured 4.0 → 2.5 ms per load simulation
+# (10 s, 8 kHz, reference plant).
 # ----------------------------------------------------------------------------
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _motor(c: NDArray[np.float64], k: int, s: float) -> tuple[float, float]:
     """Motor position [rad] and d/ds [rad per sample] at k + s from spline coefficients c (N−1, 4)."""
     a3 = c[k, 0]
@@ -114,7 +117,7 @@ def _motor(c: NDArray[np.float64], k: int, s: float) -> tuple[float, float]:
     return ((a3 * s + a2) * s + a1) * s + a0, (3.0 * a3 * s + 2.0 * a2) * s + a1
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _hermite(y0: float, d0: float, y1: float, d1: float, u: float) -> float:
     """Cubic Hermite on u ∈ [0, 1] with end values y and end slopes d (per unit u)."""
     u2 = u * u
@@ -123,7 +126,7 @@ def _hermite(y0: float, d0: float, y1: float, d1: float, u: float) -> float:
             + (-2 * u3 + 3 * u2) * y1 + (u3 - u2) * d1)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _smooth_sign(x: float) -> float:
     """tanh(x), exactly ±1 where float64 tanh is (|x| > 20)."""
     if x > 20.0:
@@ -133,7 +136,7 @@ def _smooth_sign(x: float) -> float:
     return math.tanh(x)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _gap_state(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: float,
                Ts: float) -> tuple[float, float]:
     """Load position and velocity after ts seconds in the gap.
@@ -166,7 +169,7 @@ def _gap_state(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: fl
     return x, v
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _accel(xm: float, vm: float, xl: float, vl: float, side: float, eps: float,
            kj: float, dj: float, bj: float, cj: float, ivs: float) -> tuple[float, float]:
     """(y, load acceleration) in contact; kj = K/J_l, dj = D/J_l, bj = B_l/J_l, cj = F_cl/J_l,
@@ -178,7 +181,7 @@ def _accel(xm: float, vm: float, xl: float, vl: float, side: float, eps: float,
     return y, a
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _rk4_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float, xl: float, vl: float,
                  side: float, eps: float, kj: float, dj: float, bj: float, cj: float, ivs: float
                  ) -> tuple[float, float, float, float, float, float]:
@@ -215,7 +218,7 @@ def _rk4_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float,
     return xn, vn, i0, i1, pe, dpe
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K: float, D: float,
                    eps: float, xl0: float, vl0: float, F_l: float, ivs: float
                    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], int]:
@@ -377,13 +380,16 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
     return I0, I1, xl_out, vl_out, events
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _sosfilt_inplace(sos: NDArray[np.float64], zi: NDArray[np.float64], x: NDArray[np.float64],
                      forward: bool) -> None:
     """Direct-form-II-transposed second-order sections over x, in place, initial state zi·x[first]."""
     n = x.shape[0]
     ns = sos.shape[0]
     x0 = x[0] if forward else x[n - 1]
+    if ns == 2:  # the default 4th-order filter: the same arithmetic on scalar states (faster)
+        _sos2_inplace(sos, zi, x, forward, x0)
+        return
     z1 = np.empty(ns)
     z2 = np.empty(ns)
     for i in range(ns):
@@ -400,7 +406,31 @@ def _sosfilt_inplace(sos: NDArray[np.float64], zi: NDArray[np.float64], x: NDArr
         x[j] = v
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
+def _sos2_inplace(sos: NDArray[np.float64], zi: NDArray[np.float64], x: NDArray[np.float64],
+                  forward: bool, x0: float) -> None:
+    """:func:`_sosfilt_inplace` for two sections, states in scalars (same operations, same order)."""
+    n = x.shape[0]
+    b00, b01, b02, a01, a02 = sos[0, 0], sos[0, 1], sos[0, 2], sos[0, 4], sos[0, 5]
+    b10, b11, b12, a11, a12 = sos[1, 0], sos[1, 1], sos[1, 2], sos[1, 4], sos[1, 5]
+    p1 = zi[0, 0] * x0
+    p2 = zi[0, 1] * x0
+    q1 = zi[1, 0] * x0
+    q2 = zi[1, 1] * x0
+    for jj in range(n):
+        j = jj if forward else n - 1 - jj
+        v = x[j]
+        y = b00 * v + p1
+        p1 = b01 * v - a01 * y + p2
+        p2 = b02 * v - a02 * y
+        v = y
+        y = b10 * v + q1
+        q1 = b11 * v - a11 * y + q2
+        q2 = b12 * v - a12 * y
+        x[j] = y
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _filtfilt_decimate(sos: NDArray[np.float64], zi: NDArray[np.float64], x: NDArray[np.float64],
                        padlen: int, step: int) -> NDArray[np.float64]:
     """scipy.signal.sosfiltfilt(sos, x)[::step] (odd padding, same initial conditions)."""
@@ -419,7 +449,7 @@ def _filtfilt_decimate(sos: NDArray[np.float64], zi: NDArray[np.float64], x: NDA
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _shaft_torque_tri(I0: NDArray[np.float64], I1: NDArray[np.float64], K: float, D: float,
                       Ts: float) -> NDArray[np.float64]:
     """Triangle-kernel average of τ_s = K·y + D·ẏ at samples 1 … N−2 (length N−2)."""
@@ -659,15 +689,33 @@ def lagged_torque(torque_ref: NDArray[np.float64], sample_rate_hz: float,
         return 0.5 * (u[:-2] + u[1:-1])
     a = (1.0 / sample_rate_hz) / lag_s
     e = math.exp(-a)
-    # τ_{k+1} = e·τ_k + (1 − e)·u_k
-    tk, _ = lfilter([0.0, 1.0 - e], [1.0, -e], u, zi=[u[0]])  # τ_0 = u_0
-    d = tk - u
     if a < 1e-4:  # series: g1 = ∫s e^{−as} = 1/2 − a/3, g2 = ∫(1−s)e^{−as} = 1/2 − a/6
         g1, g2 = 0.5 - a / 3.0, 0.5 - a / 6.0
     else:
         g1 = (1.0 - (1.0 + a) * e) / (a * a)
         g2 = (a - 1.0 + e) / (a * a)
-    return 0.5 * (u[:-2] + u[1:-1]) + g1 * d[:-2] + g2 * d[1:-1]
+    # τ_{k+1} = e·τ_k + (1 − e)·u_k, τ_0 = u_0 (compiled; the arithmetic of
+    # scipy.signal.lfilter([0, 1 − e], [1, −e], u, zi=[u_0]) and of the array expression
+    # 0.5·(u[:-2] + u[1:-1]) + g1·d[:-2] + g2·d[1:-1], d = τ − u, operation for operation)
+    return _lagged_torque(np.ascontiguousarray(u), e, g1, g2)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _lagged_torque(u: NDArray[np.float64], e: float, g1: float, g2: float) -> NDArray[np.float64]:
+    n = u.shape[0]
+    b1 = 1.0 - e
+    a1 = -e
+    out = np.empty(n - 2)
+    z = u[0]
+    d_prev = 0.0
+    for k in range(n - 1):
+        t = 0.0 * u[k] + z
+        z = b1 * u[k] - a1 * t
+        d = t - u[k]
+        if k >= 1:
+            out[k - 1] = 0.5 * (u[k - 1] + u[k]) + g1 * d_prev + g2 * d
+        d_prev = d
+    return out
 
 
 def load_velocity_scale(problem: ResidualProblem, coulomb_rate: float) -> float:
