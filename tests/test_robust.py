@@ -82,6 +82,16 @@ def test_current_loop_is_kept_with_its_bandwidth() -> None:
     assert "friction" not in d
 
 
+def test_step5_check_models_the_kept_current_loop() -> None:
+    """Step 5's open-loop simulation gets the kept lag: its FRD matches the measured one as well
+    as on the ideal plant (within noise), instead of the lag's phase showing as model error;
+    the frequency-domain step 6 (which has no lag term) is skipped, and said to be."""
+    res = _identified("current_loop")
+    assert res.iterations[-1]["frd_error"] < 0.02
+    assert res.iterations[-1]["frd_error"] < 0.2 * res.iterations[0]["frd_error"]
+    assert any("step 6 check skipped" in n for n in res.notes)
+
+
 def test_ideal_plant_keeps_no_extra_term() -> None:
     res = _identified("ideal")
     d = res.to_dict()

@@ -409,14 +409,28 @@ def _frd_and_fit(rec: Recording, opt: IdentificationOptions, st: _Stages,
 
 
 def _step5(rec: Recording, frd: Any, params: TwoMassParameters, eps: float, delay_s: float,
-           opt: IdentificationOptions) -> float:
-    """Paper step 5: FRD of the open-loop dead-zone simulation vs the measured FRD."""
+           opt: IdentificationOptions, lag_s: float = 0.0) -> float:
+    """Paper step 5: FRD of the open-loop dead-zone simulation vs the measured FRD.
+
+    ``lag_s``: a kept current-loop time constant T_c [s]; the simulation, which holds its torque
+    over each sample, then gets the lag's exact mean over the sample (state τ_k at the tick,
+    u_k held: τ̄_k = u_k + (τ_k − u_k)·(T_c/Ts)·(1 − e^{−Ts/T_c})). Coulomb friction is not in this
+    simulation (it is exact per linear mode); the result says so when friction was kept.
+    """
+    from scipy.signal import lfilter
+
     from .backlash import simulate_deadzone
     from .frd import estimate_frd
     from .paper import frd_error
 
     d = max(0, int(round(delay_s * rec.sample_rate_hz)))
-    sim = simulate_deadzone(params, eps, rec.torque_ref, rec.sample_rate_hz, delay_samples=d)
+    torque = rec.torque_ref
+    if lag_s > 0.0:
+        ts = 1.0 / rec.sample_rate_hz
+        a = math.exp(-ts / lag_s)
+        state = lfilter([0.0, 1.0 - a], [1.0, -a], torque)  # τ at each tick, from rest
+        torque = torque + (state - torque) * (lag_s / ts) * (1.0 - a)
+    sim = simulate_deadzone(params, eps, torque, rec.sample_rate_hz, delay_samples=d)
     g = estimate_frd(rec.torque_ref, sim.motor_velocity, rec.sample_rate_hz,
                      band_hz=opt.band_hz, resolution_hz=opt.resolution_hz)
     lo = max(1.0, opt.band_hz[0])
@@ -543,10 +557,16 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
         iterations.append({"frd_error": e0, "epsilon_deg": math.degrees(best.epsilon_rad)})
     except IdentificationError as err:  # the start may be unphysical; not fatal
         notes.append(f"step 5 on the frequency-domain start failed: {err}")
-    e1 = _step5(rec, frd, params, jf.epsilon_rad, 1.0 / fs, opt)
+    e1 = _step5(rec, frd, params, jf.epsilon_rad, 1.0 / fs, opt, lag_s=jf.lag_s if jf.terms.current_loop else 0.0)
     iterations.append({"frd_error": e1, "epsilon_deg": math.degrees(jf.epsilon_rad)})
+    if jf.terms.coulomb_motor or jf.terms.coulomb_load:
+        notes.append("step 5's open-loop simulation has no Coulomb friction: its frd_error includes the "
+                     "friction's effect on the FRD")
     step6: dict[str, Any] = {}
-    if opt.step6_check and jf.epsilon_rad > 0:
+    if opt.step6_check and jf.epsilon_rad > 0 and jf.terms.any:
+        notes.append("step 6 check skipped: its frequency-domain refit has no friction or current-loop "
+                     f"terms, and this result kept {', '.join(jf.terms.names())}")
+    elif opt.step6_check and jf.epsilon_rad > 0:
         # the paper's step 6 applied to the hybrid result: remove the backlash's effect from
         # v_m with (parameters, ε̂), refit the FRD, step 5 again — shows whether the
         # frequency-domain refit would move the model (it should not when the model is right)

@@ -888,7 +888,10 @@ def joint_fit(
         # drop chaotic bursts (see burst_mask) and refit until the kept set is stable
         dropped = 0.0 if mask[0] is None else 1.0 - float(mask[0].mean())
         for _ in range(trim_rounds):
-            r_now = fun(th)[:n_motor]
+            r_full = fun(th)
+            if stop_cost_nm > 0.0 and _rms(r_full) <= stop_cost_nm:
+                break  # at the noise floor: there are no bursts worth a refit
+            r_now = r_full[:n_motor]
             keep = burst_mask(r_now, rate, threshold=trim_threshold)
             if mask[0] is not None:
                 keep &= mask[0]
