@@ -230,6 +230,22 @@ def test_identified_current_loop_and_friction_are_used() -> None:
     assert v.margins.phase_margin_deg >= 45.0
 
 
+def test_no_compensation_from_a_model_that_does_not_explain_the_data() -> None:
+    """An identification that leaves 2 % of the torque unexplained (bench_tuning's impact-rich
+    'stiff light 200Hz': ε 0.31° for 0.25°, where compensating made the load error worse)."""
+    from types import SimpleNamespace
+
+    def ident(ratio: float) -> SimpleNamespace:
+        stage = SimpleNamespace(detail={"residual_ratio": ratio})
+        return SimpleNamespace(parameters=IDENTIFIED, epsilon_rad=EPS_ID, backlash_detected=True,
+                               stage=lambda name: stage)
+
+    poor = design(ident(0.02), TuningOptions())
+    assert not poor.backlash.enabled and poor.reference_filter_time_constant_s == 0.0
+    assert any("not trusted" in n for n in poor.notes)
+    assert design(ident(3e-4), TuningOptions()).backlash.enabled
+
+
 def test_no_compensation_without_backlash() -> None:
     s = design(REFERENCE_PLANT, TuningOptions(), epsilon_rad=0.0)
     assert not s.backlash.enabled and s.margins_gap is None

@@ -114,6 +114,9 @@ class TuningOptions(BaseModel):
                                              "(× (J_m + J_l) × reference acceleration)")
     backlash_compensation: bool = Field(True, description="compensate the identified backlash")
     backlash_threshold_deg: float = Field(0.01, ge=0, description="ε at or below this is 'no backlash' [deg]")
+    backlash_max_residual_ratio: float = Field(0.005, gt=0, description="no backlash compensation when the "
+                                               "identification leaves more than this fraction of the torque "
+                                               "unexplained (its ε is then not trusted) [-]")
     backlash_time_constant_s: float | None = Field(None, gt=0, le=1.0, description="smoothing of the "
                                                    "compensation [s]; None = 1/K_p")
     backlash_approach_filter: bool = Field(True, description="with backlash compensation, smooth the position "
@@ -631,6 +634,12 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
     if kpos < 2.0 * math.pi * bw / opt.ratio("position"):
         notes.append(f"position gain limited by the anti-resonance ({md.f_antiresonance_hz:.1f} Hz)")
     amount = 2.0 * mdl.epsilon_rad if (mdl.backlash and opt.backlash_compensation) else 0.0
+    ratio_unexplained = _residual_ratio(model)
+    if amount > 0.0 and ratio_unexplained is not None and ratio_unexplained > opt.backlash_max_residual_ratio:
+        amount = 0.0
+        notes.append(f"backlash compensation off: the identified model leaves {100 * ratio_unexplained:.2f} % of the "
+                     f"torque unexplained (> {100 * opt.backlash_max_residual_ratio:g} %), so its ε is not trusted; "
+                     "a wrong amount can double the load error")
     tau_b = opt.backlash_time_constant_s if opt.backlash_time_constant_s is not None else 1.0 / kpos
     tau_r, filter_note = 0.0, ""
     if amount > 0.0 and opt.backlash_approach_filter:
@@ -660,6 +669,14 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
     mg_ct = loop_margins(settings, p, gap=True) if mdl.backlash else None
     return replace(settings, margins=m_ct, margins_gap=mg_ct,
                    position_margins=loop_margins(settings, p, loop="position"))
+
+
+def _residual_ratio(model: Any) -> float | None:
+    """RMS residual / RMS torque of a hybrid identification's joint fit (None when unknown)."""
+    try:
+        return float(model.stage("joint").detail["residual_ratio"])
+    except (AttributeError, KeyError, TypeError, ValueError):
+        return None
 
 
 def approach_time_constant(p: TwoMassParameters, kpos: float, opt: TuningOptions) -> tuple[float, str]:
