@@ -36,6 +36,7 @@ from sim_drive.plant import Plant, PlantParameters
 
 FS = 8000.0
 J_M = 4.78e-4
+JACOBIAN: str | None = None
 
 
 @dataclass(frozen=True)
@@ -102,7 +103,7 @@ def run(case: Case, method: Method, compare: bool) -> dict:
     # the default limit (5 % unexplained torque) would refuse the plants with unmodelled
     # friction / lag; here every estimate is shown, with its residual ratio
     opts = IdentificationOptions(method=method, compare_searches=compare and method is Method.HYBRID,
-                                 max_residual_ratio=1.0)
+                                 max_residual_ratio=1.0, **({"jacobian": JACOBIAN} if JACOBIAN else {}))
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         res = identify(rec, opts)
@@ -143,12 +144,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-paper", action="store_true", help="hybrid method only")
     ap.add_argument("--paper-quick", action="store_true", help="paper method on the reference plant only")
     ap.add_argument("--no-compare", action="store_true", help="skip the grid/Bayes search comparison")
+    ap.add_argument("--jacobian", choices=("broyden", "finite_difference"), default=None,
+                    help="the joint fit's Jacobian (default: IdentificationOptions' default)")
+    ap.add_argument("--only", default=None, help="comma-separated plant names")
     args = ap.parse_args(argv)
-    cases = [c for c in FULL if not args.quick or c.name in QUICK_NAMES]
+    cases = [c for c in FULL if (not args.quick or c.name in QUICK_NAMES)
+             and (args.only is None or c.name in args.only.split(","))]
+    global JACOBIAN
+    JACOBIAN = args.jacobian
     methods = [Method.HYBRID] + ([] if args.no_paper else [Method.PAPER])
     # warm up the compiled kernels (first compile is not part of the figures)
     identify(record(FULL[0]), IdentificationOptions())
-    print(f"# {len(cases)} plants, methods {[m.value for m in methods]}; load average "
+    print(f"# {len(cases)} plants, methods {[m.value for m in methods]}, jacobian "
+          f"{JACOBIAN or IdentificationOptions().jacobian}; load average "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (wall times inflate with load)")
     rows = []
     for case in cases:

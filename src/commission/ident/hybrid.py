@@ -140,6 +140,12 @@ class IdentificationOptions(BaseModel):
     max_residual_ratio: float = Field(
         0.05, gt=0, description="Hybrid: fail when RMS(residual)/RMS(low-passed τ_ref) exceeds this [-].")
     threads: int = Field(2, ge=1, le=64, description="Threads for residual evaluations.")
+    jacobian: Literal["broyden", "finite_difference"] = Field(
+        "finite_difference", description="Hybrid: Jacobian of the joint fit's least squares — "
+        "'finite_difference' (at every accepted point; 1 + n_parameters evaluations per step) or "
+        "'broyden' (rank-one updates from the residuals already evaluated; finite differences at "
+        "the first point, every few points, after poor steps and to confirm convergence). Broyden "
+        "is faster but not as robust on lightly damped plants (see commission.ident.jointfit.joint_fit).")
     model_terms: tuple[Literal["coulomb_motor", "coulomb_load", "current_loop"], ...] = Field(
         ("coulomb_motor", "coulomb_load", "current_loop"),
         description="Hybrid: candidate terms beyond the two-mass + dead-zone model — Coulomb "
@@ -515,7 +521,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
     jf = joint_fit(problem, start, search.best, epsilon_max_rad=eps_max,
                    max_nfev=opt.max_fit_evaluations, threads=opt.threads,
                    load_weight_nm_per_rad=w_load, stop_cost_nm=opt.good_fit_ratio * ref,
-                   terms=candidates)
+                   terms=candidates, jacobian=opt.jacobian)
     joint_evaluations = jf.evaluations
     second_pass: dict[str, Any] | None = None
     if jf.dropped_fraction > opt.second_pass_dropped_fraction:
@@ -698,7 +704,7 @@ def _second_pass(problem: Any, jf: Any, eps_cands: Any, opt: IdentificationOptio
                       fixed_terms=(jf.coulomb_load_nm, jf.lag_s))
     j2 = joint_fit(problem, p, s.best, epsilon_max_rad=eps_max, max_nfev=opt.max_fit_evaluations,
                    threads=opt.threads, load_weight_nm_per_rad=w_load, terms=jf.terms,
-                   stop_cost_nm=opt.good_fit_ratio * ref)
+                   stop_cost_nm=opt.good_fit_ratio * ref, jacobian=opt.jacobian)
     take = j2.dropped_fraction < jf.dropped_fraction and j2.cost <= 1.5 * jf.cost
     info = {"evaluations": s.evaluations + j2.evaluations, "epsilon_deg": math.degrees(j2.epsilon_rad),
             "dropped_fraction": j2.dropped_fraction, "cost_nm": j2.cost, "taken": bool(take),
@@ -726,7 +732,7 @@ def _refit_at(problem: Any, jf: Any, terms: Any, opt: IdentificationOptions, eps
                       lag_s=jf.lag_s)
     return joint_fit(problem, p, [cell], epsilon_max_rad=eps_max, max_nfev=opt.max_fit_evaluations,
                      threads=opt.threads, load_weight_nm_per_rad=w_load, terms=terms,
-                     initial_mask=initial_mask, trim_rounds=trim_rounds)
+                     initial_mask=initial_mask, trim_rounds=trim_rounds, jacobian=opt.jacobian)
 
 
 def _select_terms(problem: Any, jf: Any, candidates: Any, opt: IdentificationOptions,
