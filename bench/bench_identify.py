@@ -177,6 +177,13 @@ def main(argv: list[str] | None = None) -> int:
                   + f";  {r['wall']:.2f}, {r['cpu']:.2f}  (joint evals {r.get('evals_joint')}, "
                   f"dropped {100 * r.get('dropped', 0):.1f} %, residual {100 * r.get('ratio', math.nan):.3f} % "
                   "of τ_ref)")
+    hyb = [r for r in rows if r["method"] == "hybrid" and "stages" in r]
+    if hyb:
+        walls = sorted(r["wall"] for r in hyb)
+        over = [f"{r['case']} {r['wall']:.1f} s" for r in hyb if r["wall"] > 2.0]
+        print(f"time per identification (target ≤ 2 s on 2 cores): median {walls[len(walls) // 2]:.2f} s, "
+              f"max {walls[-1]:.2f} s; within target {len(hyb) - len(over)} of {len(hyb)}"
+              + (f"; over: {', '.join(over)}" if over else ""))
     cmp_rows = [r for r in rows if "cmp" in r]
     if cmp_rows:
         print()
