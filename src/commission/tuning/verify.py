@@ -228,6 +228,17 @@ def _run(plant: TruePlant, settings: ControllerSettings, opt: TuningOptions, sce
     t_pre = 0.01
     kpos = settings.position_gain_per_s
     t_ref = 8.0 * settings.reference_filter_time_constant_s  # the reference filter's own settling
+    n0 = int(t_pre / Ts)
+    # smooth moves (position_move, reversal): samples of a move, of the dwell after it, of the last dwell
+    n_move = int(round(opt.reversal_move_time_s / Ts))
+    n_dwell = int(round((min(1.0, max(0.2, 10.0 / kpos)) + t_ref) / Ts))
+    n_final = max(n_dwell, int(round(_FINAL_DWELL_S / Ts)))
+
+    def position_run(r: NDArray[np.float64], v: NDArray[np.float64], a: NDArray[np.float64]) -> NDArray[np.float64]:
+        return simulate_closed_loop(pv, controller_vector(settings, position_mode=True,
+                                                          torque_limit_nm=opt.torque_limit_nm),
+                                    n_sub, Ts, r, v, a)
+
     if scenario == "velocity_step":
         dur = t_pre + min(2.0, max(0.1, 40.0 * settings.velocity_integral_time_s))
         n = int(round(dur / Ts))
@@ -254,9 +265,7 @@ def _run(plant: TruePlant, settings: ControllerSettings, opt: TuningOptions, sce
         A = opt.position_step_rad
         r = np.where(t >= t_pre, A, 0.0)
         zero = np.zeros(n)
-        out = simulate_closed_loop(pv, controller_vector(settings, position_mode=True,
-                                                         torque_limit_nm=opt.torque_limit_nm),
-                                   n_sub, Ts, r, zero, zero)
+        out = position_run(r, zero, zero)
         xm, xl = out[0], out[2]
         tail = max(1, n // 10)
         amp, f = _limit_cycle(xl[-max(8, n // 4):], Ts, 2.0 * q_l)
@@ -270,18 +279,12 @@ def _run(plant: TruePlant, settings: ControllerSettings, opt: TuningOptions, sce
             signals={"t": t, "motor_position": xm, "load_position": xl, "torque": out[4], "offset": out[6],
                      "reference_filtered": out[7]})
     if scenario == "position_move":
-        n_move = int(round(opt.reversal_move_time_s / Ts))
-        n_dwell = int(round((min(1.0, max(0.2, 10.0 / kpos)) + t_ref) / Ts))
         A = opt.position_step_rad
         p1, v1, a1 = _min_jerk(n_move, Ts, A)
-        n0 = int(t_pre / Ts)
-        n_final = max(n_dwell, int(round(_FINAL_DWELL_S / Ts)))
         r = np.concatenate([np.zeros(n0), p1, np.full(n_final, A)])
         v = np.concatenate([np.zeros(n0), v1, np.zeros(n_final)])
         a = np.concatenate([np.zeros(n0), a1, np.zeros(n_final)])
-        out = simulate_closed_loop(pv, controller_vector(settings, position_mode=True,
-                                                         torque_limit_nm=opt.torque_limit_nm),
-                                   n_sub, Ts, r, v, a)
+        out = position_run(r, v, a)
         n = r.size
         t = np.arange(n) * Ts
         xm, xl = out[0], out[2]
@@ -299,20 +302,13 @@ def _run(plant: TruePlant, settings: ControllerSettings, opt: TuningOptions, sce
     if scenario == "reversal":
         # out, back, out again: the first move starts from the centred gap (an artificial start);
         # the figures come from the second and third moves, each after a reversal
-        n_move = int(round(opt.reversal_move_time_s / Ts))
-        n_dwell = int(round((min(1.0, max(0.2, 10.0 / kpos)) + t_ref) / Ts))
         A = opt.reversal_move_rad
         p1, v1, a1 = _min_jerk(n_move, Ts, A)
-        n0 = int(t_pre / Ts)
-        z0, zd = np.zeros(n0), np.zeros(n_dwell)
-        n_final = max(n_dwell, int(round(_FINAL_DWELL_S / Ts)))
-        zf = np.zeros(n_final)
+        z0, zd, zf = np.zeros(n0), np.zeros(n_dwell), np.zeros(n_final)
         r = np.concatenate([z0, p1, np.full(n_dwell, A), A - p1, zd, p1, np.full(n_final, A)])
         v = np.concatenate([z0, v1, zd, -v1, zd, v1, zf])
         a = np.concatenate([z0, a1, zd, -a1, zd, a1, zf])
-        out = simulate_closed_loop(pv, controller_vector(settings, position_mode=True,
-                                                         torque_limit_nm=opt.torque_limit_nm),
-                                   n_sub, Ts, r, v, a)
+        out = position_run(r, v, a)
         n = r.size
         t = np.arange(n) * Ts
         xm, xl = out[0], out[2]
