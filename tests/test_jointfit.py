@@ -63,6 +63,22 @@ def test_joint_fit_converges_from_a_start_fifteen_percent_off(problem):
     assert all(v < 0.01 for v in jf.relative_stderr.values())
 
 
+def test_robust_scale_changes_nothing_when_the_first_start_converges(problem):
+    # the Cauchy loss is only switched on for starts stuck on a bursty plateau: a start that
+    # converges gives the same evaluations and the same result, bit for bit
+    f = np.array([1.1, 0.9, 1.2, 0.8, 0.9, 1.1])
+    start = TwoMassParameters(*(REFERENCE_PLANT.as_array() * f))
+    cells = [SearchCell(math.radians(0.35), 0.5, 1.0, 0.0), SearchCell(math.radians(0.2), 0.5, 1.0, 0.0)]
+    ref = float(np.sqrt(np.mean(problem.torque_f ** 2)))
+    plain = joint_fit(problem, start, cells, stop_cost_nm=1e-3 * ref)
+    robust = joint_fit(problem, start, cells, stop_cost_nm=1e-3 * ref, robust_scale_nm=3e-3 * ref)
+    assert not plain.robust_loss and not robust.robust_loss
+    assert robust.evaluations == plain.evaluations
+    assert robust.epsilon_rad == plain.epsilon_rad
+    assert_allclose(robust.parameters.as_array(), plain.parameters.as_array(), rtol=0, atol=0)
+    assert abs(math.degrees(robust.epsilon_rad) - EPS_DEG) < 1e-3
+
+
 def test_joint_fit_reaches_zero_when_started_with_backlash():
     tau = chirp(ExcitationConfig()).samples
     r = Plant(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.0,

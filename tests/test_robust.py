@@ -30,6 +30,8 @@ CASES: dict[str, tuple[TwoMassParameters, dict]] = {
     "current_loop": (REFERENCE_PLANT, dict(epsilon_deg=0.40, current_loop_bandwidth_hz=1000.0,
                                            torque_noise_nm=1e-3)),
     "lightly_damped": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25)),
+    # the noise seed on which least squares throughout ended 0.041° off (issue 8, session notes)
+    "lightly_damped_seed9": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25, seed=9)),
 }
 _cache: dict[str, Identification] = {}
 
@@ -49,7 +51,7 @@ def test_lightly_damped_plant_has_the_stated_damping() -> None:
     assert modes(LIGHTLY_DAMPED).zeta_resonance == pytest.approx(0.07, abs=0.002)
 
 
-@pytest.mark.parametrize("name", ["coulomb", "current_loop", "lightly_damped"])
+@pytest.mark.parametrize("name", ["coulomb", "current_loop", "lightly_damped", "lightly_damped_seed9"])
 def test_accuracy_under_unideal_effects(name: str) -> None:
     true, extra = CASES[name]
     res = _identified(name)
@@ -108,3 +110,14 @@ def test_windows_the_model_cannot_reproduce_are_said_in_the_notes() -> None:
     if dropped > 0:
         assert any("dropped" in n for n in res.notes)
     assert math.isfinite(res.stage("joint").detail["residual_ratio"])
+
+
+def test_a_start_stuck_on_an_impact_plateau_is_refitted_with_a_robust_loss_and_said() -> None:
+    # the lightly damped plant's first least-squares start ends ~20× above the stop cost with
+    # chaotic bursts in its residual; the ideal plant's converges and stays least squares
+    res = _identified("lightly_damped")
+    assert res.stage("joint").detail["robust_loss"] is True
+    assert any("Cauchy loss" in n for n in res.notes)
+    ideal = _identified("ideal")
+    assert ideal.stage("joint").detail["robust_loss"] is False
+    assert not any("Cauchy loss" in n for n in ideal.notes)

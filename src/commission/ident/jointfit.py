@@ -293,6 +293,12 @@ def _rms(v: NDArray[np.float64]) -> float:
     return float(np.sqrt(np.mean(v * v)))
 
 
+def _robust_rms(v: NDArray[np.float64], scale: float) -> float:
+    """sqrt(mean(c²·ln(1 + (v/c)²))), c = ``scale``: the Cauchy loss least_squares minimises,
+    in the units of an RMS (equal to the RMS where |v| ≪ c, smaller where bursts exceed c)."""
+    return float(scale * np.sqrt(np.mean(np.log1p((v / scale) ** 2))))
+
+
 def burst_mask(r: NDArray[np.float64], decimated_rate_hz: float, *, threshold: float = 10.0,
                guard_s: float = 0.02) -> NDArray[np.bool_]:
     """Samples to keep: drop bursts where |r| > threshold·σ (σ = 1.4826·MAD), ± guard_s.
@@ -506,6 +512,8 @@ class JointFit:
     """Kept decimated motor samples (None: all)."""
     n_used: int = 0
     """Residual samples used (after dropping bursts)."""
+    robust_loss: bool = False
+    """Whether the starts switched to the Cauchy loss (``robust_scale_nm`` of :func:`joint_fit`)."""
 
 
 class _Counter:
@@ -537,16 +545,17 @@ class _Start:
     so that :meth:`finish` continues exactly the trajectory it would have followed (same
     steps, same result), and :meth:`abandon` drops it. While paused, :attr:`cost` and
     :attr:`x` are its best evaluated point, which is trf's current iterate (trf accepts a step
-    only when it lowers the cost). ``stall_above`` ≤ 0: never paused.
+    only when it lowers the cost). ``stall_above`` ≤ 0: never paused. With ``robust_scale`` > 0
+    the cost tracked is that of the Cauchy loss (:func:`_robust_rms`), the one trf lowers.
     """
 
     def __init__(self, fun: Callable[[NDArray[np.float64]], NDArray[np.float64]],
                  x0: NDArray[np.float64], jac: Callable[..., NDArray[np.float64]],
                  lo: NDArray[np.float64], hi: NDArray[np.float64], max_nfev: int,
-                 stall_above: float) -> None:
+                 stall_above: float, robust_scale: float = 0.0) -> None:
         import threading
 
-        self._fun, self._stall_above = fun, stall_above
+        self._fun, self._stall_above, self._scale = fun, stall_above, robust_scale
         self.cost = math.inf
         self.x: NDArray[np.float64] | None = None
         self.fun: NDArray[np.float64] | None = None
@@ -559,7 +568,7 @@ class _Start:
 
         def run() -> None:
             try:
-                sol = _least_squares(self._f, x0, jac, lo, hi, max_nfev)
+                sol = _least_squares(self._f, x0, jac, lo, hi, max_nfev, robust_scale)
             except _Abandoned:
                 sol = None
             except BaseException as err:  # noqa: BLE001 - re-raised on the caller's thread
@@ -575,7 +584,7 @@ class _Start:
 
     def _f(self, th: NDArray[np.float64]) -> NDArray[np.float64]:
         r = self._fun(th)
-        c = _rms(r)
+        c = _robust_rms(r, self._scale) if self._scale > 0.0 else _rms(r)
         if c < self.cost:
             self.cost, self.x, self.fun = c, np.array(th, dtype=np.float64), r
         h = self._hist
@@ -634,6 +643,11 @@ class _Start:
         return self.sol
 
 
+#: A first start that ends above this factor × the stop cost with a bursty residual switches the
+#: joint fit's starts to the Cauchy loss (``robust_scale_nm`` of :func:`joint_fit`). The
+#: plateaus measured (ζ = 0.07, Coulomb, 1 kHz lag plants) lie at 20–25× the stop cost.
+_PLATEAU_FACTOR = 10.0
+
 #: A paused start is continued when its cost is within this factor of the best start's.
 _RESUME_FACTOR = 1.05
 
@@ -649,8 +663,11 @@ def _near(e: list, f: list, rtol: float) -> bool:
 
 def _least_squares(fun: Callable[[NDArray[np.float64]], NDArray[np.float64]], x0: NDArray[np.float64],
                    jac: Callable[..., NDArray[np.float64]], lo: NDArray[np.float64],
-                   hi: NDArray[np.float64], max_nfev: int) -> OptimizeResult:
+                   hi: NDArray[np.float64], max_nfev: int, robust_scale: float = 0.0) -> OptimizeResult:
     """trf on (lo, hi); with a Broyden :class:`_Jacobian`, the convergence safeguard.
+
+    ``robust_scale`` > 0: the Cauchy loss ρ(z) = ln(1 + z), z = (r/robust_scale)², instead of
+    the squares (see ``robust_scale_nm`` in :func:`joint_fit`).
 
     A run whose end rests on a Broyden Jacobian (gtol: the last Jacobian; ftol/xtol: the one
     the last step came from) is not trusted: a finite-difference Jacobian is computed at its
@@ -659,8 +676,9 @@ def _least_squares(fun: Callable[[NDArray[np.float64]], NDArray[np.float64]], x0
     So every converged run ends by the same tests as with finite differences throughout.
     """
     def run(x: NDArray[np.float64], n: int) -> OptimizeResult:
+        loss = {"loss": "cauchy", "f_scale": robust_scale} if robust_scale > 0.0 else {}
         return least_squares(fun, x, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac",
-                             xtol=1e-8, ftol=1e-10, gtol=1e-8, max_nfev=n)
+                             xtol=1e-8, ftol=1e-10, gtol=1e-8, max_nfev=n, **loss)
 
     if not (isinstance(jac, _Jacobian) and jac.broyden):
         return run(x0, max_nfev)
@@ -815,6 +833,7 @@ def joint_fit(
     terms: ModelTerms | None = None,
     initial_mask: NDArray[np.bool_] | None = None,
     jacobian: str = "finite_difference",
+    robust_scale_nm: float = 0.0,
 ) -> JointFit:
     """Least squares of (K/J_l, D/J_l, B_l/J_l, ε) with (J_m, B_m, J_l) projected, per start.
 
@@ -838,6 +857,18 @@ def joint_fit(
     ζ = 0.07 plant's result depends on them (second pass, burst trimming): over noise seeds 1–7
     finite differences found ε within 0.0001° every time, Broyden missed by 0.02–0.03° on one
     or two seeds. Hence finite differences by default.
+
+    ``robust_scale_nm`` > 0: when the first start ends (or stalls) on a plateau above
+    ``_PLATEAU_FACTOR`` × ``stop_cost_nm`` with bursts in its residual (:func:`burst_mask` drops
+    samples), its cell is run again, and the further starts are run, minimising the Cauchy loss
+    Σ ln(1 + (r/c)²), c = robust_scale_nm, instead of the squares: chaotic impact bursts
+    (residual 100–1000× the noise) then cannot hold a start on the plateau; samples within a few
+    c of zero count as in least squares. Plants whose first start converges are untouched (same
+    evaluations, same result). The burst trimming that follows is plain least squares on the
+    kept samples, so the result, its intervals and the model selection are least-squares ones.
+    Costs, consensus and stops are judged on the RMS residual either way. Measured
+    (bench/bench_identify.py plants, noise seeds 1–9): see ``robust_loss_ratio`` in
+    :class:`commission.ident.hybrid.IdentificationOptions`.
     """
     if jacobian not in ("broyden", "finite_difference"):
         raise ValueError(f"unknown jacobian {jacobian!r}")
@@ -947,8 +978,13 @@ def joint_fit(
     n_motor = problem.acceleration_f.shape[0]
     rate = problem.sample_rate_hz / problem.decimation
     entries: list[list] = []  # [cost, result (None while paused), _Start, ε0, φ, lo, hi]
+    queue = list(starts)
+    scale_now = 0.0  # least squares until a start ends on a bursty plateau (robust_scale_nm)
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        for cell in starts:
+        qi = 0
+        while qi < len(queue):
+            cell = queue[qi]
+            qi += 1
             if isinstance(cell, SearchCell):
                 eps0, phi, rates = cell.epsilon_rad, cell.phi, cell.rates(start)
                 fcm0, lag0 = cell.coulomb_motor_nm, cell.lag_s
@@ -982,7 +1018,8 @@ def joint_fit(
             # could reach consensus with it and is continued at once; any other paused start
             # cannot, so the consensus check is made only when the two best starts have ended.
             try:
-                run = _Start(primary(hi, jac), th0, jac, lo, hi, max_nfev, stop_cost_nm)
+                run = _Start(primary(hi, jac), th0, jac, lo, hi, max_nfev, stop_cost_nm,
+                             scale_now)
             except BaseException:
                 for e in entries:
                     if e[1] is None:
@@ -1001,6 +1038,18 @@ def joint_fit(
                 entry[0] = _rms(entry[1].fun)
             if entry[1] is not None and entry[0] <= stop_cost_nm:
                 break  # at the noise floor: no other start can do materially better
+            # the first start ended (or stalled) on a plateau far above the noise floor, with
+            # bursts in its residual: that cell again, and the rest, with the Cauchy loss
+            if (scale_now == 0.0 and robust_scale_nm > 0.0 and stop_cost_nm > 0.0
+                    and len(entries) == 1 and run.cost > _PLATEAU_FACTOR * stop_cost_nm):
+                r1 = (entry[1].fun if entry[1] is not None else run.fun)[:n_motor]
+                if not burst_mask(r1, rate, threshold=trim_threshold).all():
+                    if entry[1] is None:
+                        entry[1] = run.abandon()
+                        entry[0] = _rms(entry[1].fun)
+                    scale_now = robust_scale_nm
+                    queue.insert(qi, cell)
+                    continue
             # consensus: two starts that end at the same cost and ε settle it
             if len(entries) >= 2 and consensus_rtol > 0:
                 a, b = sorted(entries, key=lambda r: r[0])[:2]
@@ -1134,6 +1183,7 @@ def joint_fit(
         seconds=time.perf_counter() - t0, success=bool(sol.success), message=str(sol.message),
         residual=r, dropped_fraction=dropped, terms=tm, coulomb_motor_nm=fcm, coulomb_load_nm=fcl,
         lag_s=lag, term_stderr=extra_sd, mask=mask[0], n_used=int(n_used if np.all(pa > 0.0) else r.size),
+        robust_loss=scale_now > 0.0,
     )
 
 
