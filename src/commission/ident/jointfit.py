@@ -866,9 +866,8 @@ def joint_fit(
     c of zero count as in least squares. Plants whose first start converges are untouched (same
     evaluations, same result). The burst trimming that follows is plain least squares on the
     kept samples, so the result, its intervals and the model selection are least-squares ones.
-    Costs, consensus and stops are judged on the RMS residual either way. Measured
-    (bench/bench_identify.py plants, noise seeds 1–9): see ``robust_loss_ratio`` in
-    :class:`commission.ident.hybrid.IdentificationOptions`.
+    Costs, consensus and stops are judged on the RMS residual either way. Measured effect: see
+    ``robust_loss_ratio`` in :class:`commission.ident.hybrid.IdentificationOptions`.
     """
     if jacobian not in ("broyden", "finite_difference"):
         raise ValueError(f"unknown jacobian {jacobian!r}")
