@@ -30,6 +30,7 @@ RESULT_KEYS = {
     "modes": {"f_resonance_hz", "zeta_resonance", "f_antiresonance_hz", "zeta_antiresonance"},
     "transfer_function": {"num", "den"},
     "source": {"file", "sample_rate_hz", "samples"},
+    "fit": {"residual_ratio", "approximate", "dropped_fraction", "robust_loss"},
 }
 
 
@@ -42,6 +43,7 @@ def test_sim_run_writes_result_json_with_the_documented_keys(sim_run):
     assert doc["backlash"]["method"] == "hybrid"
     assert doc["source"] == {"file": str(sim_run / "run.mcap"), "sample_rate_hz": 8000.0, "samples": 80000}
     assert abs(doc["backlash"]["epsilon_deg"] - 0.40) < 0.01  # the default plant's backlash
+    assert doc["fit"]["residual_ratio"] < 0.002 and doc["fit"]["approximate"] is False
 
 
 def test_replay_gives_the_live_result(sim_run, tmp_path, capsys):

@@ -32,6 +32,10 @@ CASES: dict[str, tuple[TwoMassParameters, dict]] = {
     "lightly_damped": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25)),
     # the noise seed on which least squares throughout ended 0.041° off (issue 8, session notes)
     "lightly_damped_seed9": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25, seed=9)),
+    # bench/bench_identify.py "stiff light 200Hz": J_l/J_m = 0.2, 200 Hz, ζ 0.12 — chaotic impacts
+    # the model does not reproduce (K comes out ~30 % low)
+    "impact_rich": (TwoMassParameters(J_m=4.78e-4, J_l=0.956e-4, B_m=0.84e-2, B_l=0.3e-2, K=125.8,
+                                      D=0.0220), dict(epsilon_deg=0.25)),
 }
 _cache: dict[str, Identification] = {}
 
@@ -49,6 +53,9 @@ def _identified(name: str) -> Identification:
 
 def test_lightly_damped_plant_has_the_stated_damping() -> None:
     assert modes(LIGHTLY_DAMPED).zeta_resonance == pytest.approx(0.07, abs=0.002)
+    m = modes(CASES["impact_rich"][0])
+    assert m.f_resonance_hz == pytest.approx(200.0, rel=0.01)
+    assert m.zeta_resonance == pytest.approx(0.12, abs=0.01)  # D for 0.11, B_m and B_l add the rest
 
 
 @pytest.mark.parametrize("name", ["coulomb", "current_loop", "lightly_damped", "lightly_damped_seed9"])
@@ -121,3 +128,12 @@ def test_a_start_stuck_on_an_impact_plateau_is_refitted_with_a_robust_loss_and_s
     ideal = _identified("ideal")
     assert ideal.stage("joint").detail["robust_loss"] is False
     assert not any("Cauchy loss" in n for n in ideal.notes)
+
+
+def test_an_impact_rich_plant_is_reported_as_approximate() -> None:
+    d = _identified("impact_rich").to_dict()
+    assert d["fit"]["residual_ratio"] > 0.005 and d["fit"]["approximate"] is True
+    assert any(n.startswith("approximate result") for n in d["notes"])
+    ideal = _identified("ideal").to_dict()
+    assert ideal["fit"]["residual_ratio"] < 0.001 and ideal["fit"]["approximate"] is False
+    assert not any(n.startswith("approximate result") for n in ideal["notes"])

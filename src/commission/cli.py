@@ -495,6 +495,12 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
             ("resonance", f"{md['f_resonance_hz']:.2f} Hz  ζ {md['zeta_resonance']:.3f}"),
             ("anti-resonance", f"{md['f_antiresonance_hz']:.2f} Hz  ζ {md['zeta_antiresonance']:.3f}"),
         ]
+        fit = ident.get("fit")
+        if fit is not None:
+            rows.append(("model fit", f"{100 * fit['residual_ratio']:.3g} % of the torque unexplained"
+                         + (f", {100 * fit['dropped_fraction']:.1f} % of the record dropped" if fit["dropped_fraction"] else "")
+                         + ("  APPROXIMATE: the model does not reproduce this axis (notes: -v)"
+                            if fit["approximate"] else "")))
     ctl = result.get("controller")
     if ctl is not None:
         vl, m, ver = ctl["velocity_loop"], ctl["margins"], ctl["verification"]
