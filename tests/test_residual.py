@@ -176,3 +176,42 @@ def test_residual_with_the_true_friction_and_lag_is_at_the_noise_floor(unideal):
     assert full.cost / ref < 5e-3
     assert no_lag.cost > 10 * full.cost
     assert lumped.cost > 5 * full.cost  # load friction is not motor friction: the gap shows it
+
+
+@pytest.mark.parametrize("coulomb_load_nm", [0.05])
+def test_load_simulation_with_stiff_coulomb_friction_matches_an_implicit_solver(coulomb_load_nm):
+    # F_cl/J_l over v_s = 1e-3 rad/s makes the smooth sign's rate 33× the sample rate: explicit
+    # RK4 needs sub-steps near zero speed. Reference: scipy's Radau (implicit) on the same ODE, no
+    # backlash (always in contact), the motor moved by the same interpolant of a recorded position.
+    from scipy.integrate import solve_ivp
+
+    from commission.ident.residual import simulate_load
+
+    tau = chirp(ExcitationConfig()).samples[:1600]  # 0.2 s: the load reverses several times
+    r = Plant(PlantParameters(**TRUE, epsilon_deg=0.0, seed=3), FS).run_torque(tau)
+    vs = 1e-3
+    p = prepare_residual(r.torque_ref, FS, motor_position=r.motor_position, cutoff_hz=400.0,
+                         velocity_scale_rad_s=vs)
+    sim = simulate_load(p, TRUE["J_l"], TRUE["B_l"], TRUE["K"], TRUE["D"], 0.0, coulomb_load_nm)
+    c, Ts = p.spline, 1.0 / FS
+    kj, dj, bj = (TRUE[k] / TRUE["J_l"] for k in ("K", "D", "B_l"))
+    cj = coulomb_load_nm / TRUE["J_l"]
+
+    def motor(t: float) -> tuple[float, float]:
+        k = min(int(t / Ts), c.shape[0] - 1)
+        s = t / Ts - k
+        a3, a2, a1, a0 = c[k]
+        return ((a3 * s + a2) * s + a1) * s + a0, ((3 * a3 * s + 2 * a2) * s + a1) / Ts
+
+    def rhs(t: float, y: np.ndarray) -> list[float]:
+        xm, vm = motor(t)
+        return [y[1], kj * (xm - y[0]) + dj * (vm - y[1]) - bj * y[1] - cj * math.tanh(y[1] / vs)]
+
+    n = c.shape[0]
+    t_eval = np.arange(n + 1) * Ts
+    ref = solve_ivp(rhs, (0.0, n * Ts), [sim.load_position[0], 0.0], method="Radau", t_eval=t_eval,
+                    rtol=1e-8, atol=1e-12)
+    assert ref.success
+    motion = float(np.ptp(ref.y[0]))
+    assert motion > 1e-3
+    assert np.max(np.abs(sim.load_position - ref.y[0])) < 1e-5 * motion
