@@ -11,7 +11,7 @@ default, and for comparison the full-resolution grid and the Bayesian search).
     python bench/bench_identify.py --quick    # a subset
     python bench/bench_identify.py --no-paper # hybrid only
 
-Plants with Coulomb friction (0.01 N·m per side), a 1 kHz current-loop lag, both, and
+Plants with Coulomb friction (0.01 and 0.03 N·m per side), a 1 kHz current-loop lag, both, and
 lightly damped ones are in the spread; the hybrid method's kept terms (model selection,
 BIC) are printed per plant ("terms": m = motor Coulomb, l = load Coulomb, c = current loop).
 """
@@ -76,6 +76,7 @@ FULL = [
     Case("soft heavy 20Hz", 5.0, 20, 0.15, 0.30),
     Case("ref zeta=0.07 e=0.25", 0.4, 65.4, 0.07, 0.25),
     Case("reference +coulomb", 0.4, 65.4, 0.167, 0.40, coulomb_nm=0.01),
+    Case("reference +coulomb 0.03", 0.4, 65.4, 0.167, 0.40, coulomb_nm=0.03),
     Case("reference +lag1k", 0.4, 65.4, 0.167, 0.40, lag_hz=1000.0),
     Case("reference +both", 0.4, 65.4, 0.167, 0.40, coulomb_nm=0.01, lag_hz=1000.0),
     Case("soft heavy +both", 4.0, 25, 0.17, 0.60, coulomb_nm=0.01, lag_hz=1000.0, B_l=1.5e-2),
