@@ -424,7 +424,16 @@ def _frd_and_fit(rec: Recording, opt: IdentificationOptions, st: _Stages,
             bad_f = frd.frequency_hz[~good]
             notes.append(f"frequency-domain start: {int((~good).sum())} of {good.size} FRD bins left out "
                          f"(quality < {opt.quality_threshold:g}; {bad_f.min():.1f}–{bad_f.max():.1f} Hz)")
-    fit = fit_transfer_function(sel)
+    try:
+        fit = fit_transfer_function(sel)
+    except IdentificationError as err:
+        if notes is None:
+            raise
+        # heavy friction can leave no physical fit of the whole band: the hybrid start then
+        # tries raised low edges (_robust_start)
+        notes.append(f"frequency-domain fit of the whole band failed ({err}); low band edges raised")
+        st.done("tffit", failed=str(err))
+        return frd, None
     st.done("tffit", num=[float(v) for v in fit.num], den=[float(v) for v in fit.den],
             delay_s=float(fit.delay_s), fit_error=float(fit.fit_error),
             sk_iterations=int(fit.iterations), converged=bool(fit.converged))
@@ -592,7 +601,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
     st.start("check", 0.9)
     iterations: list[dict[str, float]] = []
     try:
-        e0 = _step5(rec, frd, start, best.epsilon_rad, fit.delay_s, opt)
+        e0 = _step5(rec, frd, start, best.epsilon_rad, 1.0 / fs if fit is None else fit.delay_s, opt)
         iterations.append({"frd_error": e0, "epsilon_deg": math.degrees(best.epsilon_rad)})
     except IdentificationError as err:  # the start may be unphysical; not fatal
         notes.append(f"step 5 on the frequency-domain start failed: {err}")
@@ -673,17 +682,18 @@ def _robust_start(rec: Recording, opt: IdentificationOptions, fit: Any, problem:
     from .jointfit import _cell_cost, linear_start
 
     masked = any(n.startswith("frequency-domain start:") for n in notes)
-    fits: list[tuple[float, Any]] = [(opt.band_hz[0], fit)]
+    fits: list[tuple[float, Any]] = [] if fit is None else [(opt.band_hz[0], fit)]
     try:
-        start, how = linear_start(fit.num, fit.den)
-        if how == "exact" and not masked:
-            return start, how, {}
+        if fit is not None:
+            start, how = linear_start(fit.num, fit.den)
+            if how == "exact" and not masked:
+                return start, how, {}
     except IdentificationError:
         pass
     def raised(f_lo: float) -> Any:
         try:
             return _frd_and_fit(rec, opt.model_copy(update={"band_hz": (f_lo, opt.band_hz[1])}),
-                                _Stages(None), [])[1]
+                                _Stages(None), [])[1]  # None when the fit fails
         except IdentificationError:
             return None
 

@@ -344,6 +344,10 @@ def _start_parameters(theta: NDArray[np.float64], w_scale: float) -> TwoMassPara
 _PHYSICAL_MAX_NFEV = 60
 
 
+#: Bound on the physical refit's log-parameters (ln J_m, ln J_l, ln K relative to its start).
+_LOG_SPAN = 20.0
+
+
 def _physical_fit(theta, Xa, Xb, Xi, H, F, U, Y, w, w_scale):  # type: ignore[no-untyped-def]
     """Refit in physical parameters with bounds, transient by variable projection.
 
@@ -401,7 +405,9 @@ def _physical_fit(theta, Xa, Xb, Xi, H, F, U, Y, w, w_scale):  # type: ignore[no
         J = dr_dc @ dc_dz
         return J - Q @ (Q.T @ J)
 
-    lo = np.array([-np.inf, -np.inf, -np.inf, _DAMPING_FLOOR, _DAMPING_FLOOR,
+    # the log-parameters bounded to e^±20 of the start: unbounded, a whole band distorted by
+    # 0.05 N·m of Coulomb friction drove them to overflow (inf coefficients, NaN into LAPACK)
+    lo = np.array([-_LOG_SPAN, -_LOG_SPAN, -_LOG_SPAN, _DAMPING_FLOOR, _DAMPING_FLOOR,
                    _DAMPING_FLOOR * S0 / D0])
     z0 = np.array([0.0, 0.0, 0.0, p0.B_m / S0, p0.B_l / S0, p0.D / D0])
     z0[3:] = np.maximum(z0[3:], 2.0 * lo[3:])
@@ -409,7 +415,7 @@ def _physical_fit(theta, Xa, Xb, Xi, H, F, U, Y, w, w_scale):  # type: ignore[no
         # converges in ≤ 35 evaluations wherever it can (bench_identify plants, band edges
         # 0.1–10 Hz); on a whole band distorted by Coulomb friction it ran to 200 without
         # converging (0.65 s), and the start is then taken from a raised band edge anyway
-        r = least_squares(fun, z0, jac=jac, bounds=(lo, np.full(6, np.inf)),
+        r = least_squares(fun, z0, jac=jac, bounds=(lo, np.array([_LOG_SPAN] * 3 + [np.inf] * 3)),
                           method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=_PHYSICAL_MAX_NFEV)
     except (ValueError, np.linalg.LinAlgError):
         return None
