@@ -85,10 +85,11 @@ QUICK_NAMES = {"reference", "reference eps=0", "stiff light 150Hz", "soft heavy 
                "reference +coulomb", "reference +lag1k", "ref zeta=0.07 e=0.25"}
 
 
-def record(case: Case) -> Recording:
+def record(case: Case, seed: int = 7, noise_nm: float = 1e-4) -> Recording:
+    """The case's plant under the default chirp, motor-side signals (torque noise [N·m], its seed)."""
     p = case.params()
     tau = chirp(ExcitationConfig()).samples
-    pp = PlantParameters(**p.as_dict(), epsilon_deg=case.eps_deg, torque_noise_nm=1e-4, seed=7,
+    pp = PlantParameters(**p.as_dict(), epsilon_deg=case.eps_deg, torque_noise_nm=noise_nm, seed=seed,
                          coulomb_motor_nm=case.coulomb_nm, coulomb_load_nm=case.coulomb_nm,
                          current_loop_bandwidth_hz=case.lag_hz)
     r = Plant(pp, FS).run_torque(tau)

@@ -22,15 +22,11 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from bench_identify import FS, FULL  # noqa: E402
+from bench_identify import FULL, record  # noqa: E402
 
-from commission.config import ExcitationConfig  # noqa: E402
 from commission.exceptions import IdentificationError  # noqa: E402
-from commission.excitation import chirp  # noqa: E402
 from commission.ident.hybrid import IdentificationOptions, identify  # noqa: E402
 from commission.ident.twomass import modes  # noqa: E402
-from commission.recording import Recording  # noqa: E402
-from sim_drive.plant import Plant, PlantParameters  # noqa: E402
 
 DEFAULT_PLANTS = ("ref zeta=0.07 e=0.25", "reference +coulomb", "reference +lag1k", "reference +both")
 
@@ -53,10 +49,8 @@ def main() -> int:
     unknown = set(names) - {c.name for c in FULL}
     if unknown:
         ap.error(f"unknown plants: {', '.join(sorted(unknown))}")
-    tau = chirp(ExcitationConfig()).samples
     # warm-up (numba's compiled kernels load or compile on first use): not timed
-    w = Plant(PlantParameters(**FULL[0].params().as_dict(), epsilon_deg=FULL[0].eps_deg, seed=0), FS).run_torque(tau)
-    identify(Recording.uniform(FS, w.torque_ref, w.motor_velocity, motor_position=w.motor_position))
+    identify(record(FULL[0], seed=0))
     print(f"# load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; torque noise {args.noise:g} N·m")
     for case in (c for c in FULL if c.name in names):
         p = case.params()
@@ -64,11 +58,7 @@ def main() -> int:
         ok_count = 0
         seeds = _seeds(args.seeds)
         for seed in seeds:
-            pp = PlantParameters(**p.as_dict(), epsilon_deg=case.eps_deg, torque_noise_nm=args.noise, seed=seed,
-                                 coulomb_motor_nm=case.coulomb_nm, coulomb_load_nm=case.coulomb_nm,
-                                 current_loop_bandwidth_hz=case.lag_hz)
-            r = Plant(pp, FS).run_torque(tau)
-            rec = Recording.uniform(FS, r.torque_ref, r.motor_velocity, motor_position=r.motor_position)
+            rec = record(case, seed=seed, noise_nm=args.noise)
             t0 = time.perf_counter()
             try:
                 res = identify(rec, IdentificationOptions(max_residual_ratio=1.0))
