@@ -425,7 +425,9 @@ def _frd_and_fit(rec: Recording, opt: IdentificationOptions, st: _Stages,
             notes.append(f"frequency-domain start: {int((~good).sum())} of {good.size} FRD bins left out "
                          f"(quality < {opt.quality_threshold:g}; {bad_f.min():.1f}–{bad_f.max():.1f} Hz)")
     try:
-        fit = fit_transfer_function(sel)
+        # hybrid: a current-loop lag, when it is a candidate, is fitted as extra delay for the
+        # start (see tffit._DELAY_GAIN); the joint fit then identifies T_c itself
+        fit = fit_transfer_function(sel, fit_delay=notes is not None and "current_loop" in opt.model_terms)
     except IdentificationError as err:
         if notes is None:
             raise
@@ -434,6 +436,9 @@ def _frd_and_fit(rec: Recording, opt: IdentificationOptions, st: _Stages,
         notes.append(f"frequency-domain fit of the whole band failed ({err}); low band edges raised")
         st.done("tffit", failed=str(err))
         return frd, None
+    if notes is not None and fit.delay_s > 1.0001 / rec.sample_rate_hz:
+        notes.append(f"transfer-function fit: {1e6 * (fit.delay_s - 1.0 / rec.sample_rate_hz):.0f} µs of "
+                     "delay fitted beyond the sample's (a current-loop lag acts like one on the FRD)")
     st.done("tffit", num=[float(v) for v in fit.num], den=[float(v) for v in fit.den],
             delay_s=float(fit.delay_s), fit_error=float(fit.fit_error),
             sk_iterations=int(fit.iterations), converged=bool(fit.converged))
@@ -683,10 +688,21 @@ def _robust_start(rec: Recording, opt: IdentificationOptions, fit: Any, problem:
 
     masked = any(n.startswith("frequency-domain start:") for n in notes)
     fits: list[tuple[float, Any]] = [] if fit is None else [(opt.band_hz[0], fit)]
+    # a start whose resonance lies beyond fs/4 is no start: the load simulation's RK4 (one
+    # step per sample) diverges near fs/2.2. Seen with an unmodelled 1 kHz lag on a light
+    # 150 Hz plant: an "exact" start with K/J_l = 1.9e16 s⁻², NaN in every search cell.
+    f_max = 0.25 * rec.sample_rate_hz
+
+    def usable(p: TwoMassParameters) -> bool:
+        try:
+            return p.K > 0 and p.J_l > 0 and p.J_m > 0 and modes(p).f_resonance_hz < f_max
+        except IdentificationError:  # no resonance at all
+            return False
+
     try:
         if fit is not None:
             start, how = linear_start(fit.num, fit.den)
-            if how == "exact" and not masked:
+            if how == "exact" and not masked and usable(start):
                 return start, how, {}
     except IdentificationError:
         pass
@@ -709,13 +725,13 @@ def _robust_start(rec: Recording, opt: IdentificationOptions, fit: Any, problem:
             st_, hw = linear_start(f.num, f.den)
         except IdentificationError:
             continue
-        if not (st_.K > 0 and st_.J_l > 0 and st_.J_m > 0):
+        if not usable(st_):
             continue
         cost = _cell_cost(problem, st_, 0.0, 0.5, 1.0, 0.0, candidates).cost
         scored.append((cost, f_lo, st_, hw))
     if not scored:
         raise IdentificationError("the fitted transfer function is not that of a two-mass plant "
-                                  "from any low band edge up to 10 Hz")
+                                  f"(resonance below fs/4 = {f_max:.0f} Hz) from any low band edge up to 10 Hz")
     scored.sort(key=lambda c: c[0])
     cost, f_lo, start, how = scored[0]
     if f_lo > opt.band_hz[0]:

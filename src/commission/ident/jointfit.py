@@ -237,7 +237,18 @@ def _project(problem: ResidualProblem, rates: LoadRates, g_f: NDArray[np.float64
              load_position: NDArray[np.float64], target: NDArray[np.float64], *,
              load_weight_nm_per_rad: float = 0.0, keep: NDArray[np.bool_] | None = None,
              coulomb_motor: bool = False, lag_linear: bool = False) -> ProjectedFit:
-    """The linear part of :func:`projected_fit`, from a load response and a torque target."""
+    """The linear part of :func:`projected_fit`, from a load response and a torque target.
+
+    A load simulation that diverged (non-finite torque: rates far beyond what one RK4 step per
+    sample resolves) gives an infinite residual — the search ranks the cell last, least
+    squares rejects the step — instead of NaN into LAPACK."""
+    if not np.all(np.isfinite(g_f)):
+        n = target.shape[0]
+        if problem.load_position is not None and load_weight_nm_per_rad > 0.0:
+            n += problem.load_position[1:-1:problem.decimation].shape[0]
+        nan = math.nan
+        return ProjectedFit(residual=np.full(n, np.inf),
+                            parameters=TwoMassParameters(J_m=nan, J_l=nan, B_m=nan, B_l=nan, K=nan, D=nan))
     cols = [problem.acceleration_f, problem.velocity_f, g_f]
     if coulomb_motor and problem.coulomb_f is not None:
         cols.append(problem.coulomb_f)
