@@ -161,3 +161,11 @@ def test_a_current_loop_lag_is_fitted_as_delay_for_the_start() -> None:
     assert ideal.stage("tffit").detail["delay_s"] == 1 / FS
     assert not any("of delay fitted" in n for n in ideal.notes)
 
+
+def test_friction_repeats_the_start_search_with_the_load_share_simulated() -> None:
+    res = _identified("coulomb")
+    fs_ = res.stage("search").detail["friction_search"]
+    assert fs_ is not None and fs_["coulomb_nm"] == pytest.approx(0.02, rel=0.5)
+    assert abs(res.stage("search").detail["best"][0]["epsilon_deg"] - 0.40) <= 0.1
+    assert any("start search repeated" in n for n in res.notes)
+    assert _identified("ideal").stage("search").detail["friction_search"] is None
