@@ -169,3 +169,18 @@ def test_friction_repeats_the_start_search_with_the_load_share_simulated() -> No
     assert abs(res.stage("search").detail["best"][0]["epsilon_deg"] - 0.40) <= 0.1
     assert any("start search repeated" in n for n in res.notes)
     assert _identified("ideal").stage("search").detail["friction_search"] is None
+
+
+def test_a_second_pass_whose_search_confirms_the_first_is_not_refitted() -> None:
+    # the friction plant's first pass drops its stick windows (≥ 1 %: a second pass is due) and
+    # ends at the right ε; the new search's best cell is the grid cell nearest it: no refit
+    res = _identified("coulomb")
+    sp = res.stage("joint").detail["second_pass"]
+    assert sp is not None and sp["confirmed"] is True and sp["taken"] is False
+    assert abs(sp["first_epsilon_deg"] - 0.40) <= 0.02
+    assert any("confirms" in n for n in res.notes)
+    # the lightly damped plant's first pass ends at a wrong ε (0.31°): its search disagrees and
+    # the refit is made — and taken
+    sp = _identified("lightly_damped").stage("joint").detail["second_pass"]
+    assert "confirmed" not in sp and sp["taken"] is True
+    assert abs(sp["first_epsilon_deg"] - 0.25) > 0.03 and abs(sp["epsilon_deg"] - 0.25) <= 0.02
