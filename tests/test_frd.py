@@ -163,3 +163,18 @@ def test_quality_drops_with_backlash() -> None:
     assert q[0.0].min() > 0.9999
     # gear impacts are not explained by any smooth linear system (measured: min 0.990)
     assert q[0.4].min() < 0.998
+
+
+def test_a_raised_band_is_the_full_frd_from_its_edge() -> None:
+    # the hybrid start fits raised low band edges by slicing one FRD (hybrid._bins) instead of
+    # estimating each band again: every field must be the same, bin for bin (quality included)
+    from commission.ident.hybrid import _bins
+
+    tq = chirp_torque()
+    v = sampled_velocity(REFERENCE_PLANT, tq) + np.random.default_rng(2).normal(0.0, 1e-3, tq.size)
+    full = estimate_frd(tq, v, FS, band_hz=(0.1, 400.0))
+    for f_lo in (1.0, 5.0, 10.0):
+        a = estimate_frd(tq, v, FS, band_hz=(f_lo, 400.0))
+        b = _bins(full, full.frequency_hz >= f_lo - 1e-9 * full.resolution_hz)
+        for k in ("frequency_hz", "response", "quality", "input_dft", "output_dft"):
+            assert np.array_equal(getattr(a, k), getattr(b, k)), (f_lo, k)

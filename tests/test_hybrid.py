@@ -200,9 +200,9 @@ def test_heavy_friction_gives_a_physical_start_without_overflow():
     notes: list[str] = []
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
-        _, fit = _frd_and_fit(rec, opt, _Stages(None), notes)
+        frd, fit = _frd_and_fit(rec, opt, _Stages(None), notes)
         problem = prepare_residual(rec.torque_ref, FS, motor_position=rec.motor_position, cutoff_hz=400.0)
-        start, _, _ = _robust_start(rec, opt, fit, problem, ModelTerms(True, True, True), notes)
+        start, _, _ = _robust_start(rec, opt, frd, fit, problem, ModelTerms(True, True, True), notes)
     assert fit is not None
     # a rough but physical start (measured: J_m +48 %, K ×2.3); the joint fit takes it from there
     # (identify: ε within 0.004°, J and K within 0.1 % on this record — 20 s, too slow to repeat here)
