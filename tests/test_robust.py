@@ -162,6 +162,9 @@ def test_a_current_loop_lag_is_fitted_as_delay_for_the_start() -> None:
     assert any("of delay fitted" in n for n in res.notes)
     start = res.stage("start").detail["parameters"]
     assert start["B_m"] == pytest.approx(REFERENCE_PLANT.B_m, rel=0.3)
+    # ... and the ε search simulates that delay as the loop's T_c
+    assert res.stage("search").detail["lag_s"] == pytest.approx(extra)
+    assert _identified("ideal").stage("search").detail["lag_s"] is None
     ideal = _identified("ideal")
     assert ideal.stage("tffit").detail["delay_s"] == 1 / FS
     assert not any("of delay fitted" in n for n in ideal.notes)

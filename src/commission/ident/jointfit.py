@@ -389,8 +389,13 @@ class SplitSearch:
 
 def _cell_cost(problem: ResidualProblem, start: TwoMassParameters, eps: float, phi: float,
                scale: float, w_load: float, terms: ModelTerms | None = None,
-               fixed: tuple[float, float] | None = None) -> SearchCell:
+               fixed: tuple[float | None, float] | None = None) -> SearchCell:
     t = terms or ModelTerms()
+    if fixed is not None and fixed[0] is None:  # T_c known, exact; friction as without ``fixed``
+        pf = projected_fit(problem, cell_rates(start, phi, scale), eps, load_weight_nm_per_rad=w_load,
+                           coulomb_motor=t.coulomb_motor or t.coulomb_load, lag_s=fixed[1])
+        return SearchCell(float(eps), float(phi), float(scale), _rms(pf.residual),
+                          coulomb_motor_nm=pf.coulomb_motor_nm, lag_s=fixed[1])
     if fixed is not None:  # (F_cl [N·m], T_c [s]) known from a previous fit: exact terms
         fcl, lag = fixed
         pf = projected_fit(problem, cell_rates(start, phi, scale), eps, load_weight_nm_per_rad=w_load,
@@ -429,7 +434,7 @@ def search_starts(
     threads: int = 2,
     load_weight_nm_per_rad: float = 0.0,
     terms: ModelTerms | None = None,
-    fixed_terms: tuple[float, float] | None = None,
+    fixed_terms: tuple[float | None, float] | None = None,
 ) -> SplitSearch:
     """Search (ε, φ, ω_a scale) on the projected torque residual, the rest at ``start``.
 
@@ -443,7 +448,8 @@ def search_starts(
     :param terms: candidate terms; their linear forms are projected in every cell (the motor
         Coulomb column, also standing in for the load's, and the first-order lag column), so
         that friction and lag cannot move the best cells; the cells carry their estimates.
-    :param fixed_terms: (F_cl [N·m], T_c [s]) from a previous fit, used exactly instead.
+    :param fixed_terms: (F_cl [N·m], T_c [s]) from a previous fit, used exactly instead;
+        F_cl None: only T_c exact (the motor column stands in for both frictions, as without).
     """
     t0 = time.perf_counter()
     eps = np.asarray(epsilons_rad, dtype=float)
