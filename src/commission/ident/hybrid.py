@@ -5,18 +5,25 @@
 1. ``frd``     — FRD of τ_ref → v_m (:func:`commission.ident.frd.estimate_frd`).
 2. ``tffit``   — 2/3 rational fit with transient term and one-sample delay
    (:func:`commission.ident.tffit.fit_transfer_function`), leaving out FRD bins whose
-   quality indicator is below ``quality_threshold`` (friction distorts the low band).
-   ``start`` maps it to a physical start (:func:`commission.ident.jointfit.linear_start`,
-   robust to an unphysical damping split); when the whole-band fit is not exactly physical
-   or bins were left out, fits from raised low edges (1, 2, 5, 10 Hz) compete and the one
-   leaving the smallest drift-free torque residual is taken (:func:`_robust_start`).
+   quality indicator is below ``quality_threshold`` (friction distorts the low band); when
+   the current-loop lag is a candidate, an extra delay is fitted too (``fit_delay``: a loop
+   acts on the FRD like about its time constant of delay, and left to the damping it spoils
+   the start's B_m/B_l split). ``start`` maps it to a physical start
+   (:func:`commission.ident.jointfit.linear_start`, robust to an unphysical damping split);
+   when the whole-band fit is not exactly physical or bins were left out, fits from raised
+   low edges (1, 2, 5, 10 Hz; 20 Hz on plants resonating above 60 Hz) compete and the one
+   leaving the smallest drift-free torque residual is taken (:func:`_robust_start`); a
+   start resonating beyond fs/4, or whose anti-resonance lies below its band, is refused.
 3. ``search``  — (ε, φ = B_l/(B_m+B_l), ω_a scale) cells on the drift-free torque residual
    (:mod:`commission.ident.residual`), J_m, B_m, J_l projected out in every evaluation —
-   and, for the candidate terms, a motor Coulomb column and a first-order lag column.
+   and, for the candidate terms, a motor Coulomb column and the lag: the fitted extra delay
+   simulated as T_c, else a first-order lag column. When the Coulomb column is large
+   (friction), the search is repeated with half of it simulated on the load side.
 4. ``joint``   — least squares of all seven parameters and the candidate terms from the
    best cells (:func:`commission.ident.jointfit.joint_fit`), chaotic bursts dropped, ε ≥ 0;
    when bursts had to be dropped, a second pass searches ε again from that fit's parameters
-   and fits the whole record (:func:`_second_pass`). Then **model selection**
+   and, unless that search confirms the first pass's ε, fits the whole record
+   (:func:`_second_pass`). Then **model selection**
    (:func:`_select_terms`): a candidate term is kept when it lowers the BIC (Wald z² > ln n),
    and the model is refitted with the kept terms only.
 5. ``check``   — the paper's step 5 for the result: simulate the dead-zone model open loop
