@@ -784,7 +784,8 @@ def _robust_start(rec: Recording, opt: IdentificationOptions, frd: Any, fit: Any
     f_peak = (float(frd.frequency_hz[above][np.argmax(np.abs(frd.response[above]) * frd.frequency_hz[above])])
               if above.any() else 0.0)
     edges = _RAISED_EDGES_HZ + ((_HIGH_EDGE_HZ,) if f_peak >= 3.0 * _HIGH_EDGE_HZ else ())
-    for f_lo in (f for f in edges if opt.band_hz[0] < f < 0.1 * opt.band_hz[1]):
+    edges = tuple(f for f in edges if opt.band_hz[0] < f < 0.1 * opt.band_hz[1])
+    for f_lo in edges:
         f2 = raised(f_lo)
         if f2 is not None:
             fits.append((f_lo, f2))
@@ -800,7 +801,7 @@ def _robust_start(rec: Recording, opt: IdentificationOptions, frd: Any, fit: Any
         scored.append((cost, f_lo, st_, hw, float(f.delay_s)))
     if not scored:
         raise IdentificationError("the fitted transfer function is not that of a two-mass plant "
-                                  f"(resonance below fs/4 = {f_max:.0f} Hz) from any low band edge up to 10 Hz")
+                                  f"(resonance below fs/4 = {f_max:.0f} Hz) from any low band edge up to {max(edges, default=opt.band_hz[0]):g} Hz")
     scored.sort(key=lambda c: c[0])
     cost, f_lo, start, how, delay = scored[0]
     if f_lo > opt.band_hz[0]:
