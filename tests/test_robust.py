@@ -53,14 +53,17 @@ CASES: dict[str, tuple[TwoMassParameters, dict]] = {
 _cache: dict[str, Identification] = {}
 
 
+def _recording(name: str) -> Recording:
+    params, extra = CASES[name]
+    kw = dict(torque_noise_nm=1e-4, seed=11)
+    kw.update(extra)
+    r = Plant(PlantParameters(**params.as_dict(), **kw), FS).run_torque(chirp(ExcitationConfig()).samples)
+    return Recording.uniform(FS, r.torque_ref, r.motor_velocity, motor_position=r.motor_position)
+
+
 def _identified(name: str) -> Identification:
     if name not in _cache:
-        params, extra = CASES[name]
-        kw = dict(torque_noise_nm=1e-4, seed=11)
-        kw.update(extra)
-        r = Plant(PlantParameters(**params.as_dict(), **kw), FS).run_torque(chirp(ExcitationConfig()).samples)
-        _cache[name] = identify(Recording.uniform(FS, r.torque_ref, r.motor_velocity,
-                                                  motor_position=r.motor_position))
+        _cache[name] = identify(_recording(name))
     return _cache[name]
 
 
@@ -198,3 +201,28 @@ def test_a_light_stiff_load_with_friction_starts_from_the_high_edge() -> None:
     d = _identified("light_coulomb").stage("start").detail
     assert d["band_low_hz"] == 20.0
     assert d["parameters"]["K"] == pytest.approx(70.77, rel=0.1)
+
+
+def test_the_search_in_two_parts_finds_the_cells_of_one_search() -> None:
+    # the middle damping split is searched first (friction shows there); without friction the
+    # other splits follow and the best cells must be those of one search over all splits
+    from commission.ident.hybrid import IdentificationOptions, _epsilon_candidates
+    from commission.ident.jointfit import ModelTerms, search_starts
+    from commission.ident.residual import prepare_residual
+
+    res = _identified("ideal")
+    d = res.stage("search").detail
+    assert d["friction_search"] is None and d["evaluations"] == 66
+    opt = IdentificationOptions()
+    rec = _recording("ideal")
+    problem = prepare_residual(rec.torque_ref, FS, motor_position=rec.motor_position,
+                               motor_velocity=rec.motor_velocity, cutoff_hz=opt.residual_cutoff_hz,
+                               velocity_scale_rad_s=opt.coulomb_velocity_scale_rad_s,
+                               interpolation=opt.motor_interpolation)
+    start = TwoMassParameters(**res.stage("start").detail["parameters"])
+    one = search_starts(problem, start, _epsilon_candidates(opt, coarse=True), opt.damping_splits,
+                        opt.omega_scales, n_best=opt.starts, terms=ModelTerms(True, True, True))
+    assert [(math.degrees(c.epsilon_rad), c.phi, c.cost) for c in one.best] == \
+        [(b["epsilon_deg"], b["phi"], b["cost_nm"]) for b in d["best"]]
+    # with friction only the middle split is searched before the friction search
+    assert _identified("coulomb").stage("search").detail["evaluations"] == 22 + 66

@@ -503,7 +503,9 @@ def _epsilon_candidates(opt: IdentificationOptions, coarse: bool) -> NDArray[np.
 
 
 def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) -> Identification:
-    from .jointfit import ModelTerms, joint_fit, search_starts
+    import dataclasses
+
+    from .jointfit import ModelTerms, _distinct_best, joint_fit, search_starts
     from .residual import prepare_residual
 
     notes: list[str] = []
@@ -539,13 +541,32 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
     # the record dropped), mid 100 Hz + friction + 1 kHz loop 2.6 → 2.1 s; others within noise.
     lag0 = start_info.get("delay_s", 1.0 / fs) - 1.0 / fs
     fixed0 = (None, lag0) if candidates.current_loop and lag0 > 0.0 else None
-    search = search_starts(problem, start, eps_cands, opt.damping_splits, opt.omega_scales,
-                           method=method, n_best=opt.starts, seed=opt.seed, threads=opt.threads,
-                           load_weight_nm_per_rad=w_load, terms=candidates, fixed_terms=fixed0)
+    ref = float(np.sqrt(np.mean(problem.torque_f ** 2)))
+
+    def searched(phis: tuple[float, ...], fixed: Any) -> Any:
+        return search_starts(problem, start, eps_cands, phis, opt.omega_scales, method=method,
+                             n_best=opt.starts, seed=opt.seed, threads=opt.threads,
+                             load_weight_nm_per_rad=w_load, terms=candidates, fixed_terms=fixed)
+
+    splits = tuple(opt.damping_splits)
+    if method == "grid" and candidates.coulomb_load and len(splits) > 1:
+        # the middle split first: when its cells show friction the search is repeated with it
+        # simulated (below) and the other splits need not be searched without it; otherwise
+        # they are, and the cells are those of one search over all splits
+        mid = splits[len(splits) // 2]
+        search = searched((mid,), fixed0)
+        if search.best[0].coulomb_motor_nm <= _FRICTION_SEARCH_RATIO * ref:
+            rest = searched(tuple(p for p in splits if p != mid), fixed0)
+            history = search.history + rest.history
+            res_eps = float(np.min(np.diff(np.unique(eps_cands)))) if len(eps_cands) > 1 else 1e-4
+            search = dataclasses.replace(
+                search, best=_distinct_best(history, opt.starts, 2.5 * res_eps), history=history,
+                evaluations=search.evaluations + rest.evaluations, seconds=search.seconds + rest.seconds)
+    else:
+        search = searched(splits, fixed0)
     best = search.best[0]
     evaluations = search.evaluations
     friction_search: dict[str, Any] | None = None
-    ref = float(np.sqrt(np.mean(problem.torque_f ** 2)))
     if candidates.coulomb_load and best.coulomb_motor_nm > _FRICTION_SEARCH_RATIO * ref:
         # friction: search again with the load's share in the load simulation (see the constant)
         first = best
