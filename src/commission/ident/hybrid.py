@@ -799,13 +799,13 @@ def _robust_start(rec: Recording, opt: IdentificationOptions, frd: Any, fit: Any
         except IdentificationError:
             return None
 
-    # one after the other: on two threads the fits (small numpy operations, GIL-bound) took
-    # longer than in turn (measured, soft heavy 25 Hz: 0.68–0.88 s against ~0.45 s)
     above = frd.frequency_hz >= 5.0
     f_peak = (float(frd.frequency_hz[above][np.argmax(np.abs(frd.response[above]) * frd.frequency_hz[above])])
               if above.any() else 0.0)
     edges = _RAISED_EDGES_HZ + ((_HIGH_EDGE_HZ,) if f_peak >= 3.0 * _HIGH_EDGE_HZ else ())
     edges = tuple(f for f in edges if opt.band_hz[0] < f < 0.1 * opt.band_hz[1])
+    # one after the other: on two threads the fits (small numpy operations, GIL-bound) took
+    # longer than in turn (measured, soft heavy 25 Hz: 0.68–0.88 s against ~0.45 s)
     for f_lo in edges:
         f2 = raised(f_lo)
         if f2 is not None:
@@ -873,7 +873,7 @@ def _second_pass(problem: Any, jf: Any, eps_cands: Any, opt: IdentificationOptio
                       threads=opt.threads, load_weight_nm_per_rad=w_load, terms=jf.terms,
                       fixed_terms=(jf.coulomb_load_nm, jf.lag_s))
     # the search confirms the first pass when its best cell is the grid cell nearest the first
-    # pass's ε: the refit would start where the first pass ended (measured below)
+    # pass's ε: the refit would start where the first pass ended (measured: see the docstring)
     grid = np.unique(np.asarray(eps_cands, dtype=float))
     if s.best[0].epsilon_rad == grid[np.argmin(np.abs(grid - jf.epsilon_rad))]:
         notes.append(f"second pass: ε searched again from the first fit's parameters confirms "
