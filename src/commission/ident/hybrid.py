@@ -447,6 +447,13 @@ def _bins(frd: Any, keep: NDArray[np.bool_]) -> Any:
                                output_dft=frd.output_dft[keep])
 
 
+def _quality_mask(frd: Any, opt: IdentificationOptions) -> NDArray[np.bool_] | None:
+    """Bins of quality ≥ ``opt.quality_threshold`` when some are below it and at least half
+    remain; None when the fit takes every bin."""
+    good = frd.quality >= opt.quality_threshold
+    return good if (not good.all() and good.sum() >= 0.5 * good.size) else None
+
+
 def _masked_fit(frd: Any, opt: IdentificationOptions, notes: list[str]) -> Any:
     """The hybrid start's 2/3 fit: bins of low quality left out (said in ``notes``); a candidate
     current-loop lag fitted as extra delay (see tffit._DELAY_GAIN; the joint fit then identifies
@@ -454,8 +461,8 @@ def _masked_fit(frd: Any, opt: IdentificationOptions, notes: list[str]) -> Any:
     from .tffit import fit_transfer_function
 
     sel = frd
-    good = frd.quality >= opt.quality_threshold
-    if not good.all() and good.sum() >= 0.5 * good.size:
+    good = _quality_mask(frd, opt)
+    if good is not None:
         sel = _bins(frd, good)
         bad_f = frd.frequency_hz[~good]
         notes.append(f"frequency-domain start: {int((~good).sum())} of {good.size} FRD bins left out "
@@ -769,7 +776,7 @@ def _robust_start(rec: Recording, opt: IdentificationOptions, frd: Any, fit: Any
     """
     from .jointfit import _cell_cost, linear_start
 
-    masked = any(n.startswith("frequency-domain start:") for n in notes)
+    masked = _quality_mask(frd, opt) is not None
     fits: list[tuple[float, Any]] = [] if fit is None else [(opt.band_hz[0], fit)]
     # a start whose resonance lies beyond fs/4 is no start: the load simulation's RK4 (one
     # step per sample) diverges near fs/2.2. Seen with an unmodelled 1 kHz lag on a light
