@@ -510,9 +510,7 @@ def _epsilon_candidates(opt: IdentificationOptions, coarse: bool) -> NDArray[np.
 
 
 def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) -> Identification:
-    import dataclasses
-
-    from .jointfit import ModelTerms, _distinct_best, joint_fit, search_starts
+    from .jointfit import ModelTerms, combine_searches, joint_fit, search_starts
     from .residual import prepare_residual
 
     notes: list[str] = []
@@ -564,11 +562,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
         search = searched((mid,), fixed0)
         if search.best[0].coulomb_motor_nm <= _FRICTION_SEARCH_RATIO * ref:
             rest = searched(tuple(p for p in splits if p != mid), fixed0)
-            history = search.history + rest.history
-            res_eps = float(np.min(np.diff(np.unique(eps_cands)))) if len(eps_cands) > 1 else 1e-4
-            search = dataclasses.replace(
-                search, best=_distinct_best(history, opt.starts, 2.5 * res_eps), history=history,
-                evaluations=search.evaluations + rest.evaluations, seconds=search.seconds + rest.seconds)
+            search = combine_searches((search, rest), eps_cands, opt.starts)
     else:
         search = searched(splits, fixed0)
     best = search.best[0]
@@ -577,10 +571,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
     if candidates.coulomb_load and best.coulomb_motor_nm > _FRICTION_SEARCH_RATIO * ref:
         # friction: search again with the load's share in the load simulation (see the constant)
         first = best
-        search = search_starts(problem, start, eps_cands, opt.damping_splits, opt.omega_scales,
-                               method=method, n_best=opt.starts, seed=opt.seed, threads=opt.threads,
-                               load_weight_nm_per_rad=w_load, terms=candidates,
-                               fixed_terms=(0.5 * first.coulomb_motor_nm, first.lag_s))
+        search = searched(splits, (0.5 * first.coulomb_motor_nm, first.lag_s))
         best = search.best[0]
         evaluations += search.evaluations
         friction_search = {"coulomb_nm": first.coulomb_motor_nm, "first_epsilon_deg": math.degrees(first.epsilon_rad),

@@ -83,6 +83,7 @@ __all__ = [
     "ModelTerms",
     "burst_mask",
     "search_starts",
+    "combine_searches",
     "joint_fit",
 ]
 
@@ -408,6 +409,24 @@ def _cell_cost(problem: ResidualProblem, start: TwoMassParameters, eps: float, p
                       coulomb_motor_nm=pf.coulomb_motor_nm, lag_s=max(pf.lag_linear_s, 0.0))
 
 
+def _eps_resolution(epsilons_rad: Sequence[float] | NDArray[np.float64]) -> float:
+    """Finest spacing of the ε candidates [rad] (1e-4 for a single candidate)."""
+    eps = np.unique(np.asarray(epsilons_rad, dtype=float))
+    return float(np.min(np.diff(eps))) if eps.size > 1 else 1e-4
+
+
+def combine_searches(parts: Sequence[SplitSearch], epsilons_rad: Sequence[float] | NDArray[np.float64],
+                     n_best: int = 3) -> SplitSearch:
+    """One search from searches of disjoint cells over the same ε candidates: the best cells are
+    those one search over all the cells would give (same distinctness rule as
+    :func:`search_starts`)."""
+    history = tuple(c for p in parts for c in p.history)
+    return SplitSearch(method=parts[0].method,
+                       best=_distinct_best(history, n_best, 2.5 * _eps_resolution(epsilons_rad)),
+                       evaluations=sum(p.evaluations for p in parts), history=history,
+                       seconds=sum(p.seconds for p in parts))
+
+
 def _distinct_best(cells: Sequence[SearchCell], n: int, min_sep_rad: float) -> tuple[SearchCell, ...]:
     out: list[SearchCell] = []
     for c in sorted(cells, key=lambda c: c.cost):
@@ -455,7 +474,7 @@ def search_starts(
     eps = np.asarray(epsilons_rad, dtype=float)
     ph = np.asarray(phis, dtype=float)
     sc = np.asarray(omega_scales, dtype=float)
-    res = float(np.min(np.diff(np.unique(eps)))) if eps.size > 1 else 1e-4
+    res = _eps_resolution(eps)
     history: list[SearchCell] = []
     w = load_weight_nm_per_rad
     if method == "grid":
