@@ -215,3 +215,45 @@ def test_load_simulation_with_stiff_coulomb_friction_matches_an_implicit_solver(
     motion = float(np.ptp(ref.y[0]))
     assert motion > 1e-3
     assert np.max(np.abs(sim.load_position - ref.y[0])) < 1e-5 * motion
+
+
+def test_contact_steps_are_exact_on_a_stiff_light_load():
+    # In contact (no backlash, no load friction) each sample interval is the exact solution of the
+    # linear ODE driven by the cubic motor interpolant (contact_map). Reference: DOP853 at
+    # rtol 1e-13 on each interval of the same cubic. ω_a·Ts = 0.16, where one RK4 step per
+    # sample (the previous integrator) was off by 3e-9 in position and 1.6e-8 in velocity.
+    from scipy.integrate import solve_ivp
+
+    from commission.ident.residual import _simulate_load, contact_map, simulate_load
+
+    plant = dict(J_m=4.78e-4, J_l=1.0e-4, B_m=0.84e-2, B_l=0.3e-2, K=160.0, D=2e-3)
+    tau = chirp(ExcitationConfig()).samples[:800]
+    r = Plant(PlantParameters(**plant, epsilon_deg=0.0, seed=3), FS).run_torque(tau)
+    p = prepare_residual(r.torque_ref, FS, motor_position=r.motor_position, cutoff_hz=400.0)
+    sim = simulate_load(p, plant["J_l"], plant["B_l"], plant["K"], plant["D"], 0.0)
+    c, Ts = p.spline, 1.0 / FS
+    kj, dj, bj = (plant[k] / plant["J_l"] for k in ("K", "D", "B_l"))
+    I0, I1, *_ = _simulate_load(c, Ts, 1.0, bj, kj, dj, 0.0, sim.load_position[0], 0.0, 0.0, 1.0,
+                                contact_map(Ts, kj, dj, bj))
+    q = [sim.load_position[0], 0.0]
+    xs, vs, i0s, i1s = [q[0]], [q[1]], [], []
+    for k in range(c.shape[0]):
+        a3, a2, a1, a0 = c[k]
+
+        def rhs(s: float, z: np.ndarray, a3=a3, a2=a2, a1=a1, a0=a0) -> list[float]:
+            xm = ((a3 * s + a2) * s + a1) * s + a0
+            vm = ((3 * a3 * s + 2 * a2) * s + a1) / Ts
+            y = xm - z[0]
+            return [Ts * z[1], Ts * (kj * y + dj * (vm - z[1]) - bj * z[1]), y, s * y]
+
+        sol = solve_ivp(rhs, (0.0, 1.0), [q[0], q[1], 0.0, 0.0], method="DOP853", rtol=1e-13, atol=1e-16)
+        q = sol.y[:2, -1]
+        xs.append(q[0])
+        vs.append(q[1])
+        i0s.append(sol.y[2, -1])
+        i1s.append(sol.y[3, -1])
+    xs, vs = np.array(xs), np.array(vs)
+    assert np.max(np.abs(sim.load_position - xs)) < 1e-11 * np.ptp(xs)
+    assert np.max(np.abs(sim.load_velocity - vs)) < 1e-11 * np.ptp(vs)
+    assert_allclose(I0, i0s, rtol=0, atol=1e-11 * np.max(np.abs(i0s)))
+    assert_allclose(I1, i1s, rtol=0, atol=1e-11 * np.max(np.abs(i1s)))

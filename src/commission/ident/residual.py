@@ -34,8 +34,15 @@ backward-difference velocity is not used at all (positions are).
 Load simulation
 ---------------
 The motor position between samples is a cubic through the latched positions
-(:func:`motor_interpolant`). The load state (x_l, v_l) is integrated with one RK4 step per sample
-while the gears are in contact, and analytically (viscous decay) in the gap.
+(:func:`motor_interpolant`). In contact the load obeys a linear ODE driven by that cubic: a whole
+sample interval is mapped exactly (:func:`contact_map`, one matrix exponential per simulation);
+parts of an interval (between events) and contact with load Coulomb friction take one RK4 step
+each. In the gap the load decays analytically (viscous). The exact map changed no result on the
+plants the model describes; on the impact-rich stiff light 200 Hz bench plant the residual at
+the true parameters fell from 2.1 % to 1.35 % of τ_ref (one RK4 step per sample is off by ~1e-8
+per interval at ω·Ts = 0.16, and chaotic impacts amplify it). A frictionless simulation takes
+1.7 instead of 2.8 ms (10 s at 8 kHz), but the joint fit's simulations carry the load-friction
+candidate and stay RK4: identification times did not change (bench/bench_identify.py).
 Contact and separation are located inside the step (Hermite interpolation of
 the gap variable, checked at interior points so that grazing contacts are
 found, then bisection), so the residual is a smooth function of ε and of the
@@ -227,9 +234,64 @@ def _rk4_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float,
     return xn, vn, i0, i1, pe, dpe
 
 
+def contact_map(Ts: float, kj: float, dj: float, bj: float) -> NDArray[np.float64]:
+    """Exact map of one whole sample interval in contact, without load Coulomb friction.
+
+    In contact the load obeys a linear ODE driven by the motor position, which is a cubic in
+    s ∈ [0, 1] over the interval (x_m = a3·s³ + a2·s² + a1·s + a0), so the interval's end state
+    and the quadratures of y = x_m − x_l − side·ε are linear in (x_l, v_l, a0 − side·ε, a1, 2·a2,
+    6·a3): one matrix exponential of the augmented system (in s, d/ds = Ts·d/dt)::
+
+        x_l' = Ts·v_l                      m0' = m1, m1' = m2, m2' = m3, m3' = 0
+        v_l' = Ts·(kj·(m0 − x_l) + dj·(m1/Ts − v_l) − bj·v_l)        (m0 = x_m − side·ε)
+        Y' = m0 − x_l,  YY' = Y          ∫₀¹ y ds = Y(1),  ∫₀¹ s·y ds = Y(1) − YY(1) (by parts)
+
+    :returns: (4, 6) rows (x_l [rad], v_l [rad/s], ∫y ds, ∫s·y ds at s = 1) over columns
+        (x_l, v_l, m0, m1, m2, m3) at s = 0.
+    """
+    from scipy.linalg import expm
+
+    A = np.zeros((8, 8))
+    A[0, 1] = Ts
+    A[1, 0] = -Ts * kj
+    A[1, 1] = -Ts * (dj + bj)
+    A[1, 4] = Ts * kj
+    A[1, 5] = dj
+    A[2, 4] = 1.0
+    A[2, 0] = -1.0
+    A[3, 2] = 1.0
+    A[4, 5] = 1.0
+    A[5, 6] = 1.0
+    A[6, 7] = 1.0
+    E = expm(A)
+    cols = [0, 1, 4, 5, 6, 7]
+    return np.ascontiguousarray(np.stack((E[0, cols], E[1, cols], E[2, cols], E[2, cols] - E[3, cols])))
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _exact_contact(cm: NDArray[np.float64], c: NDArray[np.float64], k: int, Ts: float, xl: float,
+                   vl: float, side: float, eps: float
+                   ) -> tuple[float, float, float, float, float, float]:
+    """:func:`_rk4_contact` over the whole interval k, exactly, by :func:`contact_map` ``cm``."""
+    a3 = c[k, 0]
+    a2 = c[k, 1]
+    a1 = c[k, 2]
+    a0 = c[k, 3]
+    m0 = a0 - side * eps
+    m2 = 2.0 * a2
+    m3 = 6.0 * a3
+    xn = cm[0, 0] * xl + cm[0, 1] * vl + cm[0, 2] * m0 + cm[0, 3] * a1 + cm[0, 4] * m2 + cm[0, 5] * m3
+    vn = cm[1, 0] * xl + cm[1, 1] * vl + cm[1, 2] * m0 + cm[1, 3] * a1 + cm[1, 4] * m2 + cm[1, 5] * m3
+    i0 = cm[2, 0] * xl + cm[2, 1] * vl + cm[2, 2] * m0 + cm[2, 3] * a1 + cm[2, 4] * m2 + cm[2, 5] * m3
+    i1 = cm[3, 0] * xl + cm[3, 1] * vl + cm[3, 2] * m0 + cm[3, 3] * a1 + cm[3, 4] * m2 + cm[3, 5] * m3
+    xc = ((a3 + a2) + a1) + a0
+    dc = (3.0 * a3 + 2.0 * a2) + a1
+    return xn, vn, i0, i1, side * (xc - xn - side * eps), side * (dc - vn * Ts)
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K: float, D: float,
-                   eps: float, xl0: float, vl0: float, F_l: float, ivs: float
+                   eps: float, xl0: float, vl0: float, F_l: float, ivs: float, cm: NDArray[np.float64]
                    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], int]:
     """Load driven by the spline motor position through the dead-zone spring.
 
@@ -290,7 +352,9 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                         if abs(vl) * ivs < _STIFF_ZONE + abs(a0) * (1.0 - s) * Ts * ivs:
                             send = s + (1.0 - s) / math.ceil(rate_h)
                 h = (send - s) * Ts
-                if send == 1.0:  # the common case, with the interval's end a constant (measured: a few % faster)
+                if send == 1.0 and s == 0.0 and cj == 0.0:  # the common case: a whole interval, linear
+                    xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, c, k, Ts, xl, vl, side, eps)
+                elif send == 1.0:  # with the interval's end a constant (measured: a few % faster)
                     xn, vn, i0, i1, p1, dp1e = _rk4_contact(c, k, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
                 else:
                     xn, vn, i0, i1, p1, dp1e = _rk4_contact(c, k, s, send, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
@@ -754,8 +818,9 @@ def simulate_load(problem: ResidualProblem, J_l: float, B_l: float, K: float, D:
     xl0 = -problem.initial_twist_rad  # motor position is shifted to start at 0
     F_l = float(coulomb_load_nm)
     ivs = 1.0 / problem.velocity_scale_rad_s
+    cm = contact_map(Ts, float(K) / float(J_l), float(D) / float(J_l), float(B_l) / float(J_l))
     I0, I1, xl, vl, events = _simulate_load(problem.spline, Ts, float(J_l), float(B_l), float(K),
-                                           float(D), max(float(epsilon_rad), 0.0), xl0, 0.0, F_l, ivs)
+                                           float(D), max(float(epsilon_rad), 0.0), xl0, 0.0, F_l, ivs, cm)
     ts = _shaft_torque_tri(I0, I1, float(K), float(D), Ts)
     return LoadSimulation(shaft_torque=ts, load_position=xl, load_velocity=vl, events=int(events))
 
