@@ -722,8 +722,9 @@ _APPROXIMATE_FACTOR = 5.0
 #: true ε (0.0–0.11° for 0.40°, seed 7); with the load's share simulated they sit at 0.36–0.41°,
 #: and the joint fit needs no Cauchy restart. Measured on the bench plants: 0.10–0.31 with
 #: 0.01–0.03 N·m per side, below 0.002 in absolute value without friction.
-#: bench/bench_seeds.py, seeds 1–9, mean wall time (with the start's fitted delay, same session):
-#: Coulomb 0.01 N·m 4.8 → 3.7 s, 0.03 N·m 8.5 → 7.0 s; all within tolerance before and after.
+#: bench/bench_seeds.py, seeds 1–9, mean wall time when introduced (with the start's fitted delay,
+#: same session): Coulomb 0.01 N·m 4.8 → 3.7 s, 0.03 N·m 8.5 → 7.0 s; all within tolerance before
+#: and after. (Today's times, after later changes: README, "Known limits".)
 _FRICTION_SEARCH_RATIO = 0.02
 
 
@@ -770,7 +771,7 @@ def _robust_start(rec: Recording, opt: IdentificationOptions, frd: Any, fit: Any
     masked = _quality_mask(frd, opt) is not None
     fits: list[tuple[float, Any]] = [] if fit is None else [(opt.band_hz[0], fit)]
     # a start whose resonance lies beyond fs/4 is no start: the load simulation's RK4 (one
-    # step per sample) diverges near fs/2.2. Seen with an unmodelled 1 kHz lag on a light
+    # step per sample, taken with load friction) diverges near fs/2.2. Seen with an unmodelled 1 kHz lag on a light
     # 150 Hz plant: an "exact" start with K/J_l = 1.9e16 s⁻², NaN in every search cell.
     f_max = 0.25 * rec.sample_rate_hz
 

@@ -300,7 +300,7 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
     contact/separation events located.
 
     Events. Separation (contact → gap): the penetration p = side·y is scanned on the cubic
-    Hermite interpolant of the RK4 step (end values and slopes, interior points for grazing), the
+    Hermite interpolant of the step (end values and slopes, interior points for grazing), the
     first root is bracketed and bisected on the interpolant, then polished by Newton steps on the
     *actual* RK4 step length (p and dp/ds of the RK4 solution), so the switch happens where the
     integrated trajectory really reaches the boundary (matters for stiff, impact-rich plants:
