@@ -234,7 +234,7 @@ def test_contact_steps_are_exact_on_a_stiff_light_load():
     c, Ts = p.spline, 1.0 / FS
     kj, dj, bj = (plant[k] / plant["J_l"] for k in ("K", "D", "B_l"))
     I0, I1, *_ = _simulate_load(c, Ts, 1.0, bj, kj, dj, 0.0, sim.load_position[0], 0.0, 0.0, 1.0,
-                                contact_map(Ts, kj, dj, bj))
+                                contact_map(Ts, kj, dj, bj), False)
     q = [sim.load_position[0], 0.0]
     xs, vs, i0s, i1s = [q[0]], [q[1]], [], []
     for k in range(c.shape[0]):
@@ -257,3 +257,19 @@ def test_contact_steps_are_exact_on_a_stiff_light_load():
     assert np.max(np.abs(sim.load_velocity - vs)) < 1e-11 * np.ptp(vs)
     assert_allclose(I0, i0s, rtol=0, atol=1e-11 * np.max(np.abs(i0s)))
     assert_allclose(I1, i1s, rtol=0, atol=1e-11 * np.max(np.abs(i1s)))
+
+
+def test_load_simulation_is_continuous_in_the_load_friction_down_to_zero(problem):
+    # F_cl = 0 modelled (RK4 contact steps) and F_cl → 0⁺ must be one smooth function, as the
+    # finite differences of the F_cl column at its bound 0 need: the change is linear in F_cl
+    # down to round-off. Without the term (None) whole contact intervals are exact instead; the
+    # two integrators differ by about what 3e-10 N·m of friction changes.
+    from commission.ident.residual import simulate_load
+
+    args = (TRUE["J_l"], TRUE["B_l"], TRUE["K"], TRUE["D"], math.radians(0.40))
+    at0 = simulate_load(problem, *args, 0.0).shaft_torque
+    gain = [float(np.max(np.abs(simulate_load(problem, *args, f).shaft_torque - at0))) / f
+            for f in (1e-12, 1e-11, 1e-10)]
+    assert max(gain) < 1.2 * min(gain)
+    none = simulate_load(problem, *args).shaft_torque
+    assert 0 < np.max(np.abs(none - at0)) < 1e-5 * np.max(np.abs(at0))

@@ -209,12 +209,12 @@ class ProjectedFit:
 
 def projected_fit(problem: ResidualProblem, rates: LoadRates, epsilon_rad: float, *,
                   load_weight_nm_per_rad: float = 0.0, keep: NDArray[np.bool_] | None = None,
-                  coulomb_motor: bool = False, coulomb_load_rate: float = 0.0, lag_s: float = 0.0,
+                  coulomb_motor: bool = False, coulomb_load_rate: float | None = None, lag_s: float = 0.0,
                   lag_linear: bool = False) -> ProjectedFit:
     """:func:`projected_residual` with the optional terms (see :class:`ModelTerms`).
 
     :param coulomb_motor: add the motor Coulomb column (F_cm solved linearly).
-    :param coulomb_load_rate: F_cl/J_l of the load simulation [rad/s²].
+    :param coulomb_load_rate: F_cl/J_l of the load simulation [rad/s²]; None: not modelled.
     :param lag_s: exact first-order current-loop time constant T_c [s] on τ_ref.
     :param lag_linear: add the column Δτ_ref/Ts (T_c solved linearly to first order; for the
         start search, where T_c is not yet a parameter).
@@ -226,7 +226,7 @@ def projected_fit(problem: ResidualProblem, rates: LoadRates, epsilon_rad: float
 
 
 def _load_response(problem: ResidualProblem, rates: LoadRates, epsilon_rad: float,
-                   coulomb_load_rate: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+                   coulomb_load_rate: float | None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The load simulation per unit J_l: (low-passed, decimated shaft torque, load position)."""
     sim = simulate_load(problem, 1.0, rates.b, rates.omega2, rates.d, epsilon_rad, coulomb_load_rate)
     g_f = _filtfilt_decimate(problem.sos, problem.zi, sim.shaft_torque, problem.padlen,
@@ -916,9 +916,9 @@ def joint_fit(
     i_lag = (4 + int(tm.coulomb_load)) if tm.current_loop else -1
     n_th = 4 + int(tm.coulomb_load) + int(tm.current_loop)
 
-    def unpack(th: NDArray[np.float64]) -> tuple[LoadRates, float, float, float]:
+    def unpack(th: NDArray[np.float64]) -> tuple[LoadRates, float, float | None, float]:
         o2, d, b = np.exp(th[:3])
-        q = float(th[i_cl]) if i_cl >= 0 else 0.0
+        q = float(th[i_cl]) if i_cl >= 0 else None  # None: not modelled (see simulate_load)
         lag = float(th[i_lag]) * 1e-6 if i_lag >= 0 else 0.0
         return LoadRates(o2, d, b), math.radians(th[3]), q, lag
 
@@ -1132,7 +1132,7 @@ def joint_fit(
         r, params = pf.residual, pf.parameters
         _, eps, q, lag = unpack(th)
         fcm = pf.coulomb_motor_nm
-        fcl = q * params.J_l
+        fcl = 0.0 if q is None else q * params.J_l
         # covariance in (ln J_m, ln J_l, ln B_m, ln B_l, ln K, ln D, ε[deg], [F_cm], [F_cl], [T_c µs])
         # from the full residual
         n_x = 7 + int(tm.coulomb_motor) + int(tm.coulomb_load) + int(tm.current_loop)
@@ -1145,9 +1145,9 @@ def joint_fit(
         def full(tx: NDArray[np.float64]) -> NDArray[np.float64]:
             counter.n += 1
             jm, jl, bm, bl, k, d = np.exp(tx[:6])
-            fl = float(tx[j_cl]) if j_cl >= 0 else 0.0
+            fl = float(tx[j_cl]) if j_cl >= 0 else None
             # the simulation does not depend on J_m, B_m, F_cm nor T_c: reuse it across those
-            skey = np.asarray([tx[1], tx[3], tx[4], tx[5], tx[6], fl], dtype=np.float64).tobytes()
+            skey = np.asarray([tx[1], tx[3], tx[4], tx[5], tx[6], fl or 0.0], dtype=np.float64).tobytes()
             hit = full_sims.get(skey)
             if hit is None:
                 sim = simulate_load(problem, jl, bl, k, d, math.radians(tx[6]), fl)
