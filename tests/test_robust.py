@@ -99,6 +99,18 @@ def test_coulomb_friction_is_kept_with_values_and_intervals() -> None:
     assert d["model_selection"]["terms"]["coulomb_motor"]["kept"]
 
 
+def test_load_friction_is_fitted_only_when_the_search_finds_friction() -> None:
+    # ideal plant: the search's Coulomb column is far below its limit, so the load term is not a
+    # candidate of the joint fit (and said so); with friction it is fitted and kept
+    sel = _identified("ideal").to_dict()["model_selection"]
+    s = sel["screened_by_search"]["coulomb_load"]
+    assert abs(s["search_coulomb_nm"]) < 0.2 * s["limit_nm"]
+    assert "coulomb_load" not in sel["terms"]
+    sel = _identified("coulomb").to_dict()["model_selection"]
+    assert "screened_by_search" not in sel
+    assert sel["terms"]["coulomb_load"]["kept"]
+
+
 def test_current_loop_is_kept_with_its_bandwidth() -> None:
     d = _identified("current_loop").to_dict()
     c = d["current_loop"]
