@@ -640,6 +640,10 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
         notes.append(f"backlash compensation off: the identified model leaves {100 * ratio_unexplained:.2f} % of the "
                      f"torque unexplained (> {100 * opt.backlash_max_residual_ratio:g} %), so its ε is not trusted; "
                      "a wrong amount can double the load error")
+    elif amount > 0.0 and _approximate(model):
+        amount = 0.0
+        notes.append("backlash compensation off: the identification is approximate (see its notes), so its ε "
+                     "is not trusted; a wrong amount can double the load error")
     tau_b = opt.backlash_time_constant_s if opt.backlash_time_constant_s is not None else 1.0 / kpos
     tau_r, filter_note = 0.0, ""
     if amount > 0.0 and opt.backlash_approach_filter:
@@ -677,6 +681,14 @@ def _residual_ratio(model: Any) -> float | None:
         return float(model.stage("joint").detail["residual_ratio"])
     except (AttributeError, KeyError, TypeError, ValueError):
         return None
+
+
+def _approximate(model: Any) -> bool:
+    """Whether a hybrid identification said its result is approximate (False when unknown)."""
+    try:
+        return bool(model.stage("joint").detail.get("approximate", False))
+    except (AttributeError, KeyError, TypeError):
+        return False
 
 
 def approach_time_constant(p: TwoMassParameters, kpos: float, opt: TuningOptions) -> tuple[float, str]:
