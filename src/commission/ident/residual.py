@@ -36,13 +36,13 @@ Load simulation
 The motor position between samples is a cubic through the latched positions
 (:func:`motor_interpolant`). In contact the load obeys a linear ODE driven by that cubic: a whole
 sample interval is mapped exactly (:func:`contact_map`, one matrix exponential per simulation);
-parts of an interval (between events) and contact with load Coulomb friction take one RK4 step
-each. In the gap the load decays analytically (viscous). The exact map changed no result on the
-plants the model describes; on the impact-rich stiff light 200 Hz bench plant the residual at
-the true parameters fell from 2.1 % to 1.35 % of τ_ref (one RK4 step per sample is off by ~1e-8
-per interval at ω·Ts = 0.16, and chaotic impacts amplify it). A frictionless simulation takes
-1.7 instead of 2.8 ms (10 s at 8 kHz), but the joint fit's simulations carry the load-friction
-candidate and stay RK4: identification times did not change (bench/bench_identify.py).
+parts of an interval (between events), and every contact step when load Coulomb friction is
+modelled, take one RK4 step each. In the gap the load decays analytically (viscous). The exact
+map changed no result on the plants the model describes; on the impact-rich stiff light 200 Hz
+bench plant the residual at the true parameters fell from 2.1 % to 1.35 % of τ_ref (one RK4
+step per sample is off by ~1e-8 per interval at ω·Ts = 0.16, and chaotic impacts amplify it).
+A simulation without load friction takes 1.7 instead of 2.8 ms (10 s at 8 kHz); the joint fit
+models load friction only when the ε search found friction (:mod:`commission.ident.hybrid`).
 Contact and separation are located inside the step (Hermite interpolation of
 the gap variable, checked at interior points so that grazing contacts are
 found, then bisection), so the residual is a smooth function of ε and of the
@@ -345,11 +345,11 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
             if guard > _MAX_PARTS:  # pathological chattering: finish the step in the current mode
                 break
             if side != 0.0:
-                # --- contact: one RK4 step (plus quadrature of y and s·y) to the end of the interval,
-                # or to the end of a sub-step where the load Coulomb smooth sign is stiff: its rate
-                # cj·ivs at v = 0 needs rate·h ≲ 1, so a step whose load speed is within
+                # --- contact: one step (exact or RK4, plus quadrature of y and s·y) to the end of the
+                # interval, or to the end of a sub-step where the load Coulomb smooth sign is stiff: its
+                # rate cj·ivs at v = 0 needs rate·h ≤ _STIFF_STEP, so a step whose load speed is within
                 # _STIFF_ZONE·v_s of zero, or could get there at the start's acceleration, is cut
-                # into ceil(rate·h) parts (the while loop takes them as it takes partial steps)
+                # into ceil(rate·h/_STIFF_STEP) parts (the while loop takes them as it takes partial steps)
                 send = 1.0
                 if cj != 0.0:
                     rate_h = cj * ivs * (1.0 - s) * Ts / _STIFF_STEP
@@ -821,10 +821,9 @@ def simulate_load(problem: ResidualProblem, J_l: float, B_l: float, K: float, D:
     :param coulomb_load_nm: load-side Coulomb friction F_cl [N·m], as F_cl·tanh(ẋ_l/v_s)
         (v_s: the problem's stated velocity scale); None: not modelled. Whole contact intervals
         are exact without the term and RK4 with it, at any value, 0 included: the simulation is
-        then one smooth function of F_cl down to its bound 0, as finite differences need (an
-        exact step at F_cl = 0 against RK4 steps beside it put the integrators' 1e-8
-        difference into the F_cl column; measured: a J_l/J_m = 2, 60 Hz plant with friction
-        and lag then ended at ε 0.36° for 0.30°).
+        then one smooth function of F_cl down to its bound 0, as finite differences need. (An
+        exact step at F_cl = 0 and RK4 steps one finite-difference step beside it differ by what
+        ~3e-10 N·m of friction changes, a 2 % error in the F_cl column on the reference plant.)
     """
     Ts = 1.0 / problem.sample_rate_hz
     xl0 = -problem.initial_twist_rad  # motor position is shifted to start at 0
