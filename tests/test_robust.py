@@ -51,6 +51,8 @@ CASES: dict[str, tuple[TwoMassParameters, dict]] = {
     # re-simulated through its impacts decorrelates); the fit explains the rest by dropping 29 %
     "lightly_damped_100hz": (TwoMassParameters(J_m=4.78e-4, J_l=4.78e-4, B_m=0.84e-2, B_l=0.838e-2,
                                                K=94.35, D=0.01502), dict(epsilon_deg=0.20, seed=3)),
+    # small friction on the load only: below the search's Coulomb limit, so screened at first
+    "small_load_coulomb": (REFERENCE_PLANT, dict(epsilon_deg=0.40, coulomb_load_nm=0.002)),
     "impact_rich": (TwoMassParameters(J_m=4.78e-4, J_l=0.956e-4, B_m=0.84e-2, B_l=0.3e-2, K=125.8,
                                       D=0.0220), dict(epsilon_deg=0.25)),
 }
@@ -113,6 +115,19 @@ def test_load_friction_is_fitted_only_when_the_search_finds_friction() -> None:
     sel = _identified("coulomb").to_dict()["model_selection"]
     assert "screened_by_search" not in sel
     assert sel["terms"]["coulomb_load"]["kept"]
+
+
+def test_small_load_friction_screened_by_the_search_is_fitted_on_its_side() -> None:
+    # 0.002 N·m on the load only: the search's column stays under its limit, the fit then keeps
+    # a motor Coulomb term, and the load term is reconsidered (without: reported as motor
+    # friction, ε 0.003–0.007° and J, K 0.2 % off)
+    res = _identified("small_load_coulomb")
+    d = res.to_dict()
+    assert d["model_selection"]["screened_by_search"]["coulomb_load"]["reconsidered"] is True
+    assert d["friction"]["load_nm"] == pytest.approx(0.002, rel=0.05) and "motor_nm" not in d["friction"]
+    assert abs(res.epsilon_deg - 0.40) <= 0.002
+    for p in ("J_m", "J_l", "K"):
+        assert getattr(res.parameters, p) == pytest.approx(getattr(REFERENCE_PLANT, p), rel=0.002), p
 
 
 def test_current_loop_is_kept_with_its_bandwidth() -> None:

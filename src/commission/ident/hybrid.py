@@ -26,8 +26,8 @@
    (:func:`_second_pass`). Then **model selection**
    (:func:`_select_terms`): a candidate term is kept when it lowers the BIC (Wald z² > ln n),
    and the model is refitted with the kept terms only. Load Coulomb friction is fitted at all
-   only when the search's Coulomb column found friction (``model_selection.screened_by_search``
-   otherwise).
+   only when the search's Coulomb column found friction, or when the fit keeps a motor Coulomb
+   term (``model_selection.screened_by_search`` says which).
 5. ``check``   — the paper's step 5 for the result: simulate the dead-zone model open loop
    (:func:`commission.ident.backlash.simulate_deadzone`), FRD of the simulation vs the
    measured FRD (:func:`commission.ident.paper.frd_error`); then the paper's step 6 once
@@ -644,6 +644,26 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
     if fit_terms.any:
         jf, selection = _select_terms(problem, jf, fit_terms, opt, eps_max, w_load, notes)
         joint_evaluations += int(selection.get("refit_evaluations", 0))
+    if screened and jf.terms.coulomb_motor:
+        # friction after all: the fit keeps a motor Coulomb term that the search's column did not
+        # show above its limit — small friction, possibly the load's (measured: 0.001–0.002 N·m on
+        # the load only came out as motor friction, ε 0.007° and J, K 0.2 % off): refit with the
+        # load term from half of it, select again
+        from .jointfit import SearchCell, joint_fit
+
+        p = jf.parameters
+        both = replace(jf.terms, coulomb_load=True)
+        cell = SearchCell(jf.epsilon_rad, p.B_l / max(p.B_m + p.B_l, 1e-300), 1.0, jf.cost,
+                          coulomb_motor_nm=jf.coulomb_motor_nm, lag_s=jf.lag_s)
+        j2 = joint_fit(problem, p, [cell], epsilon_max_rad=eps_max, max_nfev=opt.max_fit_evaluations,
+                       threads=opt.threads, load_weight_nm_per_rad=w_load, terms=both,
+                       initial_mask=jf.mask, trim_rounds=0, jacobian=opt.jacobian)
+        joint_evaluations += j2.evaluations
+        jf, selection = _select_terms(problem, j2, both, opt, eps_max, w_load, notes)
+        joint_evaluations += int(selection.get("refit_evaluations", 0))
+        screened["coulomb_load"]["reconsidered"] = True
+        notes.append("load Coulomb friction, screened out by the ε search, fitted after all: the fit kept a "
+                     "motor Coulomb term")
     if screened:
         selection = dict(selection or {}, screened_by_search=screened)
     params = jf.parameters
