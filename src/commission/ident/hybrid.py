@@ -649,15 +649,9 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
         # show above its limit — small friction, possibly the load's (measured: 0.001–0.002 N·m on
         # the load only came out as motor friction, ε 0.007° and J, K 0.2 % off): refit with the
         # load term from half of it, select again
-        from .jointfit import SearchCell, joint_fit
-
-        p = jf.parameters
         both = replace(jf.terms, coulomb_load=True)
-        cell = SearchCell(jf.epsilon_rad, p.B_l / max(p.B_m + p.B_l, 1e-300), 1.0, jf.cost,
-                          coulomb_motor_nm=jf.coulomb_motor_nm, lag_s=jf.lag_s)
-        j2 = joint_fit(problem, p, [cell], epsilon_max_rad=eps_max, max_nfev=opt.max_fit_evaluations,
-                       threads=opt.threads, load_weight_nm_per_rad=w_load, terms=both,
-                       initial_mask=jf.mask, trim_rounds=0, jacobian=opt.jacobian)
+        j2 = _refit_at(problem, jf, both, opt, eps_max, w_load, initial_mask=jf.mask,
+                       load_friction_start_nm=0.5 * jf.coulomb_motor_nm)
         joint_evaluations += j2.evaluations
         jf, selection = _select_terms(problem, j2, both, opt, eps_max, w_load, notes)
         joint_evaluations += int(selection.get("refit_evaluations", 0))
@@ -974,17 +968,19 @@ def _second_pass(problem: Any, jf: Any, eps_cands: Any, opt: IdentificationOptio
 
 
 def _refit_at(problem: Any, jf: Any, terms: Any, opt: IdentificationOptions, eps_max: float,
-              w_load: float, *, trim_rounds: int = 0, initial_mask: Any = None) -> Any:
-    """Joint fit started at a previous solution ``jf`` (with ``terms``)."""
+              w_load: float, *, trim_rounds: int = 0, initial_mask: Any = None,
+              load_friction_start_nm: float | None = None) -> Any:
+    """Joint fit started at a previous solution ``jf`` (with ``terms``); F_cl starts at
+    ``load_friction_start_nm`` when given, else at the solution's."""
     from .jointfit import SearchCell, joint_fit
 
     p = jf.parameters
     phi = p.B_l / max(p.B_m + p.B_l, 1e-300)
+    fcl = jf.coulomb_load_nm if load_friction_start_nm is None else load_friction_start_nm
     # a cell at the solution: cell_rates(start = solution, φ of the solution) gives back its
     # rates; joint_fit starts F_cl/J_l at half the cell's motor Coulomb value (its search
     # convention), hence 2·F_cl
-    cell = SearchCell(jf.epsilon_rad, phi, 1.0, jf.cost, coulomb_motor_nm=2.0 * jf.coulomb_load_nm,
-                      lag_s=jf.lag_s)
+    cell = SearchCell(jf.epsilon_rad, phi, 1.0, jf.cost, coulomb_motor_nm=2.0 * fcl, lag_s=jf.lag_s)
     return joint_fit(problem, p, [cell], epsilon_max_rad=eps_max, max_nfev=opt.max_fit_evaluations,
                      threads=opt.threads, load_weight_nm_per_rad=w_load, terms=terms,
                      initial_mask=initial_mask, trim_rounds=trim_rounds, jacobian=opt.jacobian)

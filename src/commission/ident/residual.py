@@ -241,6 +241,9 @@ def _rk4_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float,
     return xn, vn, i0, i1, pe, dpe
 
 
+_NO_CONTACT_MAP = np.zeros((4, 6))
+
+
 def contact_map(Ts: float, kj: float, dj: float, bj: float) -> NDArray[np.float64]:
     """Exact map of one whole sample interval in contact, without load Coulomb friction.
 
@@ -829,7 +832,9 @@ def simulate_load(problem: ResidualProblem, J_l: float, B_l: float, K: float, D:
     xl0 = -problem.initial_twist_rad  # motor position is shifted to start at 0
     F_l = 0.0 if coulomb_load_nm is None else float(coulomb_load_nm)
     ivs = 1.0 / problem.velocity_scale_rad_s
-    cm = contact_map(Ts, float(K) / float(J_l), float(D) / float(J_l), float(B_l) / float(J_l))
+    # the exact contact map serves only simulations without load friction (RK4 otherwise)
+    cm = (contact_map(Ts, float(K) / float(J_l), float(D) / float(J_l), float(B_l) / float(J_l))
+          if coulomb_load_nm is None else _NO_CONTACT_MAP)
     I0, I1, xl, vl, events = _simulate_load(problem.spline, Ts, float(J_l), float(B_l), float(K),
                                            float(D), max(float(epsilon_rad), 0.0), xl0, 0.0, F_l, ivs, cm,
                                            coulomb_load_nm is not None)

@@ -675,20 +675,25 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
                    position_margins=loop_margins(settings, p, loop="position"))
 
 
+def _joint_detail(model: Any) -> dict[str, Any]:
+    """The joint-fit stage's detail of a hybrid identification ({} when there is none)."""
+    try:
+        return dict(model.stage("joint").detail)
+    except (AttributeError, KeyError, TypeError):
+        return {}
+
+
 def _residual_ratio(model: Any) -> float | None:
     """RMS residual / RMS torque of a hybrid identification's joint fit (None when unknown)."""
     try:
-        return float(model.stage("joint").detail["residual_ratio"])
-    except (AttributeError, KeyError, TypeError, ValueError):
+        return float(_joint_detail(model)["residual_ratio"])
+    except (KeyError, TypeError, ValueError):
         return None
 
 
 def _approximate(model: Any) -> bool:
     """Whether a hybrid identification said its result is approximate (False when unknown)."""
-    try:
-        return bool(model.stage("joint").detail.get("approximate", False))
-    except (AttributeError, KeyError, TypeError):
-        return False
+    return bool(_joint_detail(model).get("approximate", False))
 
 
 def approach_time_constant(p: TwoMassParameters, kpos: float, opt: TuningOptions) -> tuple[float, str]:
