@@ -32,6 +32,9 @@ CASES: dict[str, tuple[TwoMassParameters, dict]] = {
     "lightly_damped": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25)),
     # the noise seed on which least squares throughout ended 0.041° off (issue 8, session notes)
     "lightly_damped_seed9": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25, seed=9)),
+    # a seed on which the first pass ends at a wrong ε, the ε scan after its first Cauchy-loss
+    # start included, and the second pass is taken
+    "lightly_damped_seed5": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25, seed=5)),
     # 3× the issue's friction: the load simulation's smooth sign is then 33× stiffer than the
     # sample rate (widening v_s instead had biased ε by 0.025°)
     "coulomb_strong": (REFERENCE_PLANT, dict(epsilon_deg=0.40, coulomb_motor_nm=0.03, coulomb_load_nm=0.03)),
@@ -47,10 +50,15 @@ CASES: dict[str, tuple[TwoMassParameters, dict]] = {
     "light_coulomb": (TwoMassParameters(J_m=4.78e-4, J_l=0.956e-4, B_m=0.84e-2, B_l=1.0e-2, K=70.77,
                                         D=0.04956),
                       dict(epsilon_deg=0.25, coulomb_motor_nm=0.01, coulomb_load_nm=0.01)),
-    # 100 Hz, J_l = J_m, ζ 0.05: at the true parameters the residual is 29 % of τ_ref (the load
-    # re-simulated through its impacts decorrelates); the fit explains the rest by dropping 29 %
-    "lightly_damped_100hz": (TwoMassParameters(J_m=4.78e-4, J_l=4.78e-4, B_m=0.84e-2, B_l=0.838e-2,
-                                               K=94.35, D=0.01502), dict(epsilon_deg=0.20, seed=3)),
+    # 100 Hz, J_l = J_m, ζ 0.05 (K, D, B_l exactly as bench_identify.py derives them): at the true
+    # parameters the residual is 29 % of τ_ref (the load re-simulated through its impacts
+    # decorrelates); the fit explains the rest by dropping 29 %. The outcome on such a plant
+    # depends on the fit's path: with B_l, K, D rounded to 4 digits it drops 18.5 % instead
+    "lightly_damped_100hz": (TwoMassParameters(J_m=4.78e-4, J_l=4.78e-4, B_m=0.84e-2,
+                                               B_l=0.53e-2 * math.sqrt(2.5),
+                                               K=(2 * math.pi * 100) ** 2 * 4.78e-4 / 2,
+                                               D=0.05 * 2 * math.pi * 100 * 4.78e-4),
+                             dict(epsilon_deg=0.20, seed=3)),
     # small friction on the load only: below the search's Coulomb limit, so screened at first
     "small_load_coulomb": (REFERENCE_PLANT, dict(epsilon_deg=0.40, coulomb_load_nm=0.002)),
     "impact_rich": (TwoMassParameters(J_m=4.78e-4, J_l=0.956e-4, B_m=0.84e-2, B_l=0.3e-2, K=125.8,
@@ -81,7 +89,8 @@ def test_lightly_damped_plant_has_the_stated_damping() -> None:
 
 
 @pytest.mark.parametrize("name", ["coulomb", "current_loop", "lightly_damped", "lightly_damped_seed9",
-                                  "coulomb_strong", "light_current_loop", "light_coulomb"])
+                                  "lightly_damped_seed5", "coulomb_strong", "light_current_loop",
+                                  "light_coulomb"])
 def test_accuracy_under_unideal_effects(name: str) -> None:
     true, extra = CASES[name]
     res = _identified(name)
@@ -178,6 +187,21 @@ def test_a_start_stuck_on_an_impact_plateau_is_refitted_with_a_robust_loss_and_s
     assert not any("Cauchy loss" in n for n in ideal.notes)
 
 
+def test_an_epsilon_left_in_a_neighbouring_minimum_by_the_robust_start_is_scanned_again() -> None:
+    # on this noise seed the first Cauchy-loss start gets the load rates right but ends at
+    # ε ≈ 0.33°; the ε scan at its other parameters ranks the true ε's cell first, and the next
+    # start reaches ε without a second pass
+    res = _identified("lightly_damped")
+    d = res.stage("joint").detail
+    e_end, e_cell = d["rescan_epsilon_deg"]
+    assert abs(e_end - 0.25) > 0.05
+    assert abs(e_cell - 0.25) <= 0.025
+    assert d["second_pass"] is None and d["dropped_fraction"] == 0.0
+    assert abs(res.epsilon_deg - 0.25) <= 0.002
+    assert any("ε scanned at its other parameters" in n for n in res.notes)
+    assert _identified("ideal").stage("joint").detail["rescan_epsilon_deg"] is None
+
+
 def test_an_impact_rich_plant_is_reported_as_approximate() -> None:
     d = _identified("impact_rich").to_dict()
     assert d["fit"]["residual_ratio"] > 0.005 and d["fit"]["approximate"] is True
@@ -236,9 +260,9 @@ def test_a_second_pass_whose_search_confirms_the_first_is_not_refitted() -> None
     assert sp is not None and sp["confirmed"] is True and sp["taken"] is False
     assert abs(sp["first_epsilon_deg"] - 0.40) <= 0.02
     assert any("confirms" in n for n in res.notes)
-    # the lightly damped plant's first pass ends at a wrong ε (0.31°): its search disagrees and
+    # this lightly damped plant's first pass ends at a wrong ε (0.33°): its search disagrees and
     # the refit is made — and taken
-    sp = _identified("lightly_damped").stage("joint").detail["second_pass"]
+    sp = _identified("lightly_damped_seed5").stage("joint").detail["second_pass"]
     assert "confirmed" not in sp and sp["taken"] is True
     assert abs(sp["first_epsilon_deg"] - 0.25) > 0.03 and abs(sp["epsilon_deg"] - 0.25) <= 0.02
 

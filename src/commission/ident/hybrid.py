@@ -629,13 +629,18 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
                    max_nfev=opt.max_fit_evaluations, threads=opt.threads,
                    load_weight_nm_per_rad=w_load, stop_cost_nm=opt.good_fit_ratio * ref,
                    terms=fit_terms, jacobian=opt.jacobian,
-                   robust_scale_nm=opt.robust_loss_ratio * ref)
+                   robust_scale_nm=opt.robust_loss_ratio * ref, rescan_epsilons_rad=eps_coarse)
     joint_evaluations = jf.evaluations
     robust_loss = jf.robust_loss
+    rescan = jf.rescan_epsilon_rad
     if robust_loss:
         notes.append("the first joint-fit start ended on a plateau far above the noise floor with "
                      "impact bursts in its residual; the starts were refitted with a Cauchy loss "
                      f"(scale {opt.robust_loss_ratio:g} × RMS τ_ref), then least squares without the bursts")
+    if rescan is not None:
+        e_end, e_cell = (math.degrees(e) for e in rescan)
+        notes.append(f"the first Cauchy-loss start ended at ε = {e_end:.3f}° on a plateau; ε scanned at its "
+                     f"other parameters, the next start took the {e_cell:.2f}° cell")
     second_pass: dict[str, Any] | None = None
     if jf.dropped_fraction > opt.second_pass_dropped_fraction:
         jf, second_pass = _second_pass(problem, jf, eps_coarse, opt, eps_max, w_load, ref, notes)
@@ -661,7 +666,9 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
     if screened:
         selection = dict(selection or {}, screened_by_search=screened)
     params = jf.parameters
-    st.done("joint", second_pass=second_pass, robust_loss=robust_loss, evaluations=joint_evaluations, cost_nm=jf.cost, success=jf.success,
+    st.done("joint", second_pass=second_pass, robust_loss=robust_loss,
+            rescan_epsilon_deg=None if rescan is None else [math.degrees(e) for e in rescan],
+            evaluations=joint_evaluations, cost_nm=jf.cost, success=jf.success,
             message=jf.message, dropped_fraction=jf.dropped_fraction, dof=jf.dof,
             epsilon_stderr_deg=math.degrees(jf.epsilon_stderr_rad),
             relative_stderr=jf.relative_stderr, terms=list(jf.terms.names()),
