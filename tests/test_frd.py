@@ -72,6 +72,14 @@ def test_quality_is_high_for_a_linear_plant(chirp_frd: tuple[np.ndarray, np.ndar
     assert frd.quality.min() > 0.9999
 
 
+def test_without_quality_the_rest_is_bit_identical(chirp_frd: tuple[np.ndarray, np.ndarray, FRD]) -> None:
+    tq, v, frd = chirp_frd
+    bare = estimate_frd(tq, v, FS, quality=False)
+    assert np.isnan(bare.quality).all() and bare.quality.shape == frd.quality.shape
+    for name in ("frequency_hz", "response", "input_dft", "output_dft"):
+        np.testing.assert_array_equal(getattr(bare, name), getattr(frd, name))
+
+
 def test_whole_record_ratio_is_biased(chirp_frd: tuple[np.ndarray, np.ndarray, FRD]) -> None:
     """Trap 1 of METHOD.md: the plain ratio is off by several % (transient), not just noise."""
     frd = chirp_frd[2]

@@ -497,7 +497,7 @@ def _step5(rec: Recording, frd: Any, params: TwoMassParameters, eps: float, dela
         torque = torque + (state - torque) * (lag_s / ts) * (1.0 - a)
     sim = simulate_deadzone(params, eps, torque, rec.sample_rate_hz, delay_samples=d)
     g = estimate_frd(rec.torque_ref, sim.motor_velocity, rec.sample_rate_hz,
-                     band_hz=opt.band_hz, resolution_hz=opt.resolution_hz)
+                     band_hz=opt.band_hz, resolution_hz=opt.resolution_hz, quality=False)
     lo = max(1.0, opt.band_hz[0])
     return frd_error(frd, g, (lo, opt.band_hz[1]))
 
