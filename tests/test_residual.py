@@ -259,6 +259,46 @@ def test_contact_steps_are_exact_on_a_stiff_light_load():
     assert_allclose(I1, i1s, rtol=0, atol=1e-11 * np.max(np.abs(i1s)))
 
 
+def test_contact_steps_with_saturated_load_friction_are_exact():
+    # Where the load moves faster than _SATURATED·v_s at both ends of a contact interval, the
+    # smooth sign is ±1 in float64 and the load friction a constant force: the interval is the
+    # exact solution (contact_map with the force folded in). Reference: DOP853 at rtol 1e-13 on
+    # each such interval, from the simulation's own state at its start (local error). One RK4
+    # step per sample was off by ~1e-9 of the motion there.
+    from scipy.integrate import solve_ivp
+
+    from commission.ident.residual import _SATURATED, _simulate_load, contact_map
+
+    plant = dict(J_m=4.78e-4, J_l=1.0e-4, B_m=0.84e-2, B_l=0.3e-2, K=160.0, D=2e-3)
+    tau = chirp(ExcitationConfig()).samples[:1600]
+    r = Plant(PlantParameters(**plant, epsilon_deg=0.0, seed=3), FS).run_torque(tau)
+    p = prepare_residual(r.torque_ref, FS, motor_position=r.motor_position, cutoff_hz=400.0)
+    c, Ts = p.spline, 1.0 / FS
+    kj, dj, bj = (plant[k] / plant["J_l"] for k in ("K", "D", "B_l"))
+    cj, vs = 0.01 / plant["J_l"], 1e-3
+    I0, I1, xl, vl, _ = _simulate_load(c, Ts, 1.0, bj, kj, dj, 0.0, 0.0, 0.0, cj, 1.0 / vs,
+                                       contact_map(Ts, kj, dj, bj), True)
+    saturated = np.flatnonzero((np.abs(vl[:-1]) > _SATURATED * vs) & (np.abs(vl[1:]) > _SATURATED * vs)
+                               & (np.sign(vl[:-1]) == np.sign(vl[1:])))
+    assert saturated.size > 0.5 * c.shape[0]  # most of the record: the check covers the common case
+    worst = 0.0
+    for k in saturated[::20]:
+        a3, a2, a1, a0 = c[k]
+
+        def rhs(s: float, z: np.ndarray, a3=a3, a2=a2, a1=a1, a0=a0) -> list[float]:
+            xm = ((a3 * s + a2) * s + a1) * s + a0
+            vm = ((3 * a3 * s + 2 * a2) * s + a1) / Ts
+            y = xm - z[0]
+            f = cj * math.tanh(z[1] / vs)
+            return [Ts * z[1], Ts * (kj * y + dj * (vm - z[1]) - bj * z[1] - f), y, s * y]
+
+        sol = solve_ivp(rhs, (0.0, 1.0), [xl[k], vl[k], 0.0, 0.0], method="DOP853", rtol=1e-13, atol=1e-16)
+        x1, v1, i0, i1 = sol.y[:, -1]
+        worst = max(worst, abs(xl[k + 1] - x1) / np.ptp(xl), abs(vl[k + 1] - v1) / np.ptp(vl),
+                    abs(I0[k] - i0) / np.max(np.abs(I0)), abs(I1[k] - i1) / np.max(np.abs(I1)))
+    assert worst < 1e-11
+
+
 def test_load_simulation_is_continuous_in_the_load_friction_down_to_zero(problem):
     # F_cl = 0 modelled (RK4 contact steps) and F_cl → 0⁺ must be one smooth function, as the
     # finite differences of the F_cl column at its bound 0 need: the change is linear in F_cl

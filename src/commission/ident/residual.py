@@ -116,6 +116,10 @@ _STIFF_ZONE = 5.0
 #: range (4e-9 at 1, as before); bench/bench_seeds.py 0.03 N·m seeds 1–9: 4.1 → 3.4 s mean, 17.6k
 #: instead of 35k sub-steps per simulation, same tolerances met. (2.5 gained no more.)
 _STIFF_STEP = 2.0
+#: |v_l|/v_s beyond which the smooth sign is ±1 in float64 (tanh(x) = 1 − 2e^(−2x): 1 − 4e−22 at
+#: 25, below half an ulp) at both ends of a contact interval: the load friction is then a
+#: constant force there and the interval is stepped exactly (:func:`_exact_contact`).
+_SATURATED = 25.0
 #: Partial steps per sample interval before the rest is finished in the current mode.
 _MAX_PARTS = 200
 
@@ -241,11 +245,9 @@ def _rk4_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float,
     return xn, vn, i0, i1, pe, dpe
 
 
-_NO_CONTACT_MAP = np.zeros((4, 6))
-
-
 def contact_map(Ts: float, kj: float, dj: float, bj: float) -> NDArray[np.float64]:
-    """Exact map of one whole sample interval in contact, without load Coulomb friction.
+    """Exact map of one whole sample interval in contact, without load Coulomb friction or with
+    a saturated one (a constant force, see :func:`_exact_contact`).
 
     In contact the load obeys a linear ODE driven by the motor position, which is a cubic in
     s ∈ [0, 1] over the interval (x_m = a3·s³ + a2·s² + a1·s + a0), so the interval's end state
@@ -280,20 +282,28 @@ def contact_map(Ts: float, kj: float, dj: float, bj: float) -> NDArray[np.float6
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _exact_contact(cm: NDArray[np.float64], c: NDArray[np.float64], k: int, Ts: float, xl: float,
-                   vl: float, side: float, eps: float
+                   vl: float, side: float, eps: float, shift: float
                    ) -> tuple[float, float, float, float, float, float]:
-    """:func:`_rk4_contact` over the whole interval k, exactly, by :func:`contact_map` ``cm``."""
+    """:func:`_rk4_contact` over the whole interval k, exactly, by :func:`contact_map` ``cm``.
+
+    ``shift`` = F/K [rad] for a constant force −F on the load over the interval (a saturated
+    Coulomb term, F = F_cl·sign(v_l)): kj·y − F/J_l = kj·(y − shift), so the map runs on
+    y − shift and the quadratures get shift back (∫₀¹ shift ds = shift, ∫₀¹ s·shift ds = shift/2).
+    """
     a3 = c[k, 0]
     a2 = c[k, 1]
     a1 = c[k, 2]
     a0 = c[k, 3]
-    m0 = a0 - side * eps
+    m0 = a0 - side * eps - shift
     m2 = 2.0 * a2
     m3 = 6.0 * a3
     xn = cm[0, 0] * xl + cm[0, 1] * vl + cm[0, 2] * m0 + cm[0, 3] * a1 + cm[0, 4] * m2 + cm[0, 5] * m3
     vn = cm[1, 0] * xl + cm[1, 1] * vl + cm[1, 2] * m0 + cm[1, 3] * a1 + cm[1, 4] * m2 + cm[1, 5] * m3
     i0 = cm[2, 0] * xl + cm[2, 1] * vl + cm[2, 2] * m0 + cm[2, 3] * a1 + cm[2, 4] * m2 + cm[2, 5] * m3
     i1 = cm[3, 0] * xl + cm[3, 1] * vl + cm[3, 2] * m0 + cm[3, 3] * a1 + cm[3, 4] * m2 + cm[3, 5] * m3
+    if shift != 0.0:
+        i0 += shift
+        i1 += 0.5 * shift
     xc = ((a3 + a2) + a1) + a0
     dc = (3.0 * a3 + 2.0 * a2) + a1
     return xn, vn, i0, i1, side * (xc - xn - side * eps), side * (dc - vn * Ts)
@@ -362,8 +372,20 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                         if abs(vl) * ivs < _STIFF_ZONE + abs(a0) * (1.0 - s) * Ts * ivs:
                             send = s + (1.0 - s) / math.ceil(rate_h)
                 h = (send - s) * Ts
-                if send == 1.0 and s == 0.0 and not friction:  # the common case: a whole interval, linear
-                    xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, c, k, Ts, xl, vl, side, eps)
+                exact = False
+                if send == 1.0 and s == 0.0:
+                    if not friction:  # the common case: a whole interval, linear
+                        xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, c, k, Ts, xl, vl, side, eps, 0.0)
+                        exact = True
+                    elif abs(vl) * ivs > _SATURATED:
+                        # the load moves fast enough that the smooth sign is ±1 in float64 over the
+                        # whole interval (checked at its end): a constant force, the step is exact
+                        sg = 1.0 if vl > 0.0 else -1.0
+                        xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, c, k, Ts, xl, vl, side, eps,
+                                                                  sg * cj / kj)
+                        exact = vn * sg * ivs > _SATURATED
+                if exact:
+                    pass
                 elif send == 1.0:  # with the interval's end a constant (measured: a few % faster)
                     xn, vn, i0, i1, p1, dp1e = _rk4_contact(c, k, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
                 else:
@@ -823,18 +845,19 @@ def simulate_load(problem: ResidualProblem, J_l: float, B_l: float, K: float, D:
 
     :param coulomb_load_nm: load-side Coulomb friction F_cl [N·m], as F_cl·tanh(ẋ_l/v_s)
         (v_s: the problem's stated velocity scale); None: not modelled. Whole contact intervals
-        are exact without the term and RK4 with it, at any value, 0 included: the simulation is
-        then one smooth function of F_cl down to its bound 0, as finite differences need. (An
-        exact step at F_cl = 0 and RK4 steps one finite-difference step beside it differ by what
-        ~3e-10 N·m of friction changes, a 2 % error in the F_cl column on the reference plant.)
+        are exact without the term; with it, at any value, 0 included, they are exact where the
+        load moves faster than ``_SATURATED``·v_s (the smooth sign is then ±1, the friction a
+        constant force) and RK4 elsewhere — a choice made by the load's speed, not by F_cl, so the
+        simulation is one smooth function of F_cl down to its bound 0, as finite differences
+        need. (Choosing by F_cl == 0 put the difference between an exact step and an RK4 one,
+        what ~3e-10 N·m of friction changes, into the F_cl column: 2 % off on the reference
+        plant.)
     """
     Ts = 1.0 / problem.sample_rate_hz
     xl0 = -problem.initial_twist_rad  # motor position is shifted to start at 0
     F_l = 0.0 if coulomb_load_nm is None else float(coulomb_load_nm)
     ivs = 1.0 / problem.velocity_scale_rad_s
-    # the exact contact map serves only simulations without load friction (RK4 otherwise)
-    cm = (contact_map(Ts, float(K) / float(J_l), float(D) / float(J_l), float(B_l) / float(J_l))
-          if coulomb_load_nm is None else _NO_CONTACT_MAP)
+    cm = contact_map(Ts, float(K) / float(J_l), float(D) / float(J_l), float(B_l) / float(J_l))
     I0, I1, xl, vl, events = _simulate_load(problem.spline, Ts, float(J_l), float(B_l), float(K),
                                            float(D), max(float(epsilon_rad), 0.0), xl0, 0.0, F_l, ivs, cm,
                                            coulomb_load_nm is not None)
