@@ -75,6 +75,17 @@ def test_accuracy(name: str, scale: float) -> None:
     assert lo <= res.epsilon_rad <= hi
 
 
+def test_a_backlash_beyond_the_search_range_extends_the_range() -> None:
+    # ε = 1.5° on the reference plant, the default range up to 1°: the best cell lies at the top,
+    # the range is doubled and ε found (it used to end at 0.83°, nothing flagged); the plants whose
+    # best cell lies inside the range are not searched further (the reference plant: 0.40°)
+    res = identify(_record(REFERENCE_PLANT, 1.5))
+    assert abs(res.epsilon_deg - 1.5) <= 0.01
+    assert res.stage("search").detail["extended_to_deg"] == 2.0
+    assert any("ε search range extended to 2°" in n for n in res.notes)
+    assert _identified("reference").stage("search").detail["extended_to_deg"] is None
+
+
 def test_no_backlash_is_reported_as_such() -> None:
     res = _identified("no_backlash")
     assert res.epsilon_deg <= 0.02
