@@ -133,6 +133,8 @@ def run(case: Case, method: Method, compare: bool) -> dict:
         j = res.stage("joint").detail
         row["dropped"] = j.get("dropped_fraction", 0.0)
         row["ratio"] = j.get("residual_ratio", math.nan)
+        row["ratio_all"] = j.get("residual_ratio_all_samples", math.nan)
+        row["approximate"] = bool(j.get("approximate", False))
         row["terms"] = "".join(c for t, c in (("coulomb_motor", "m"), ("coulomb_load", "l"),
                                               ("current_loop", "c")) if t in j.get("terms", [])) or "-"
         if compare:
@@ -182,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
                   ("frd", "tffit", "start", "search", "joint", "check"))
                   + f";  {r['wall']:.2f}, {r['cpu']:.2f}  (joint evals {r.get('evals_joint')}, "
                   f"dropped {100 * r.get('dropped', 0):.1f} %, residual {100 * r.get('ratio', math.nan):.3f} % "
-                  "of τ_ref)")
+                  f"of τ_ref, {100 * r.get('ratio_all', math.nan):.3f} % on all samples"
+                  f"{', approximate' if r.get('approximate') else ''})")
     hyb = [r for r in rows if r["method"] == "hybrid" and "stages" in r]
     if hyb:
         walls = sorted(r["wall"] for r in hyb)

@@ -59,6 +59,13 @@ CASES: dict[str, tuple[TwoMassParameters, dict]] = {
                                                K=(2 * math.pi * 100) ** 2 * 4.78e-4 / 2,
                                                D=0.05 * 2 * math.pi * 100 * 4.78e-4),
                              dict(epsilon_deg=0.20, seed=3)),
+    # 100 Hz, J_l = J_m, ζ 0.1, ε 0.15° (bench_identify's derivation): at the true parameters 0.65 %
+    # of τ_ref is left; the fit ends at ε 0.41° explaining the 86 % it keeps at the noise floor
+    "lightly_damped_100hz_zeta01": (TwoMassParameters(J_m=4.78e-4, J_l=4.78e-4, B_m=0.84e-2,
+                                                      B_l=0.53e-2 * math.sqrt(2.5),
+                                                      K=(2 * math.pi * 100) ** 2 * 4.78e-4 / 2,
+                                                      D=0.1 * 2 * math.pi * 100 * 4.78e-4),
+                                    dict(epsilon_deg=0.15, seed=5)),
     # small friction on the load only: below the search's Coulomb limit, so screened at first
     "small_load_coulomb": (REFERENCE_PLANT, dict(epsilon_deg=0.40, coulomb_load_nm=0.002)),
     "impact_rich": (TwoMassParameters(J_m=4.78e-4, J_l=0.956e-4, B_m=0.84e-2, B_l=0.3e-2, K=125.8,
@@ -209,6 +216,21 @@ def test_an_impact_rich_plant_is_reported_as_approximate() -> None:
     ideal = _identified("ideal").to_dict()
     assert ideal["fit"]["residual_ratio"] < 0.001 and ideal["fit"]["approximate"] is False
     assert not any(n.startswith("approximate result") for n in ideal["notes"])
+
+
+def test_a_result_that_cannot_explain_the_windows_it_dropped_is_reported_as_approximate() -> None:
+    d = _identified("lightly_damped_100hz_zeta01").to_dict()
+    fit = d["fit"]
+    # the other two rules let it pass: small residual on the kept samples, < 20 % dropped
+    assert fit["residual_ratio"] < 0.005 and 0 < fit["dropped_fraction"] < 0.2
+    assert fit["residual_ratio_all_samples"] > 0.025 and fit["approximate"] is True
+    assert any(n.startswith("approximate result") and "over the whole record" in n for n in d["notes"])
+    # results within the tolerances: every sample explained about as well as the kept ones
+    for name in ("ideal", "coulomb", "lightly_damped_seed9"):
+        f = _identified(name).to_dict()["fit"]
+        assert f["residual_ratio_all_samples"] < 0.015 and f["approximate"] is False, name
+    assert _identified("ideal").to_dict()["fit"]["residual_ratio_all_samples"] == \
+        _identified("ideal").to_dict()["fit"]["residual_ratio"]
 
 
 def test_a_result_that_drops_a_fifth_of_the_record_is_reported_as_approximate() -> None:
