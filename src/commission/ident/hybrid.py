@@ -563,9 +563,9 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
     fixed0 = (None, lag0) if candidates.current_loop and lag0 > 0.0 else None
     ref = float(np.sqrt(np.mean(problem.torque_f ** 2)))
 
-    def searched(phis: tuple[float, ...], fixed: Any) -> Any:
-        return search_starts(problem, start, eps_cands, phis, opt.omega_scales, method=method,
-                             n_best=opt.starts, seed=opt.seed, threads=opt.threads,
+    def searched(phis: tuple[float, ...], fixed: Any, eps: Any = None) -> Any:
+        return search_starts(problem, start, eps_cands if eps is None else eps, phis, opt.omega_scales,
+                             method=method, n_best=opt.starts, seed=opt.seed, threads=opt.threads,
                              load_weight_nm_per_rad=w_load, terms=candidates, fixed_terms=fixed)
 
     splits = tuple(opt.damping_splits)
@@ -597,15 +597,14 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
                      "in all) on the load side of the simulation")
     # a best cell at the top of the range: the backlash may be wider than the range (see the constant)
     eps_hi = opt.epsilon_bounds_deg[1]
-    step = math.radians(opt.epsilon_resolution_deg * (5 if opt.search is SearchMethod.COARSE else 1))
+    coarse = opt.search is SearchMethod.COARSE
+    step = math.radians(opt.epsilon_resolution_deg * (5 if coarse else 1))
     extended_deg: float | None = None
     while (method == "grid" and eps_hi < _EPSILON_EXTEND_MAX_DEG
            and best.epsilon_rad >= float(np.max(eps_cands)) - 2.5 * step):
-        more = _epsilon_candidates(opt, coarse=opt.search is SearchMethod.COARSE, bounds_deg=(eps_hi, 2.0 * eps_hi))
+        more = _epsilon_candidates(opt, coarse=coarse, bounds_deg=(eps_hi, 2.0 * eps_hi))
         more = more[more > np.max(eps_cands) + 1e-12]
-        part = search_starts(problem, start, more, splits, opt.omega_scales, method=method,
-                             n_best=opt.starts, seed=opt.seed, threads=opt.threads,
-                             load_weight_nm_per_rad=w_load, terms=candidates, fixed_terms=fixed_now)
+        part = searched(splits, fixed_now, more)
         eps_cands = np.concatenate((eps_cands, more))
         search = combine_searches((search, part), eps_cands, opt.starts)
         best = search.best[0]
@@ -724,7 +723,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
 
         p_ = jf.parameters
         ratio_all = torque_residual(
-            problem, p_.J_m, p_.J_l, p_.B_m, p_.B_l, p_.K, p_.D, jf.epsilon_rad, load_weight_nm_per_rad=0.0,
+            problem, p_.J_m, p_.J_l, p_.B_m, p_.B_l, p_.K, p_.D, jf.epsilon_rad, load_weight_nm_per_rad=w_load,
             coulomb_motor_nm=jf.coulomb_motor_nm if jf.terms.coulomb_motor else 0.0,
             coulomb_load_nm=jf.coulomb_load_nm if jf.terms.coulomb_load else None,
             lag_s=jf.lag_s if jf.terms.current_loop else 0.0).cost / ref
