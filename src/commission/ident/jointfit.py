@@ -1028,7 +1028,7 @@ def joint_fit(
     n_motor = problem.acceleration_f.shape[0]
     rate = problem.sample_rate_hz / problem.decimation
     entries: list[list] = []  # [cost, result (None while paused), _Start, ε0, φ, lo, hi]
-    queue: list = list(starts)
+    queue: list[SearchCell | tuple[float, float] | _Rescan] = list(starts)
     scale_now = 0.0  # least squares until a start ends on a bursty plateau (robust_scale_nm)
     rescanned = rescan_epsilons_rad is None  # once, after the first Cauchy-loss start
     rescan: tuple[float, float] | None = None
@@ -1037,37 +1037,33 @@ def joint_fit(
         while qi < len(queue):
             cell = queue[qi]
             qi += 1
-            given: tuple | None = None
-            if isinstance(cell, _Rescan):
-                given = (cell.theta, cell.lo, cell.hi)
+            if isinstance(cell, _Rescan):  # a point of a previous start, in its bounds
                 eps0, phi = math.radians(float(cell.theta[3])), cell.phi
-                rates = LoadRates(*np.exp(cell.theta[:3]))
-                fcm0, lag0 = 0.0, 0.0
-            elif isinstance(cell, SearchCell):
-                eps0, phi, rates = cell.epsilon_rad, cell.phi, cell.rates(start)
-                fcm0, lag0 = cell.coulomb_motor_nm, cell.lag_s
+                th0, lo, hi = cell.theta, cell.lo, cell.hi
             else:
-                eps0, phi = cell[0], cell[1]
-                rates = cell_rates(start, phi)
-                fcm0, lag0 = 0.0, 0.0
-            extra0: list[float] = []
-            lo_x: list[float] = []
-            hi_x: list[float] = []
-            if tm.coulomb_load:
-                # the search's motor column holds F_cm + F_cl: start with half of it on the load
-                extra0.append(max(0.5 * fcm0, 0.0) / max(start.J_l, 1e-12))
-                lo_x.append(0.0)
-                hi_x.append(1e7)
-            if tm.current_loop:
-                extra0.append(min(max(lag0, 0.0) * 1e6, 0.9 * _LAG_MAX_US))
-                lo_x.append(0.0)
-                hi_x.append(_LAG_MAX_US)
-            th0 = np.array([math.log(rates.omega2), math.log(rates.d), math.log(rates.b),
-                            min(math.degrees(eps0), eps_max_deg)] + extra0)
-            lo = np.concatenate((th0[:3] - 4.0, [0.0], lo_x))
-            hi = np.concatenate((th0[:3] + 4.0, [eps_max_deg], hi_x))
-            if given is not None:
-                th0, lo, hi = given
+                if isinstance(cell, SearchCell):
+                    eps0, phi, rates = cell.epsilon_rad, cell.phi, cell.rates(start)
+                    fcm0, lag0 = cell.coulomb_motor_nm, cell.lag_s
+                else:
+                    eps0, phi = cell[0], cell[1]
+                    rates = cell_rates(start, phi)
+                    fcm0, lag0 = 0.0, 0.0
+                extra0: list[float] = []
+                lo_x: list[float] = []
+                hi_x: list[float] = []
+                if tm.coulomb_load:
+                    # the search's motor column holds F_cm + F_cl: start with half of it on the load
+                    extra0.append(max(0.5 * fcm0, 0.0) / max(start.J_l, 1e-12))
+                    lo_x.append(0.0)
+                    hi_x.append(1e7)
+                if tm.current_loop:
+                    extra0.append(min(max(lag0, 0.0) * 1e6, 0.9 * _LAG_MAX_US))
+                    lo_x.append(0.0)
+                    hi_x.append(_LAG_MAX_US)
+                th0 = np.array([math.log(rates.omega2), math.log(rates.d), math.log(rates.b),
+                                min(math.degrees(eps0), eps_max_deg)] + extra0)
+                lo = np.concatenate((th0[:3] - 4.0, [0.0], lo_x))
+                hi = np.concatenate((th0[:3] + 4.0, [eps_max_deg], hi_x))
             th0 = np.clip(th0, lo + 1e-9, hi - 1e-9)
 
             jac = new_jacobian(hi)
