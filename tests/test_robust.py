@@ -32,9 +32,9 @@ CASES: dict[str, tuple[TwoMassParameters, dict]] = {
     "lightly_damped": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25)),
     # the noise seed on which least squares throughout ended 0.041° off (issue 8, session notes)
     "lightly_damped_seed9": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25, seed=9)),
-    # a seed on which the first pass ends at a wrong ε, the ε scan after its first Cauchy-loss
-    # start included, and the second pass is taken
-    "lightly_damped_seed5": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25, seed=5)),
+    # a seed on which the first pass ends at a wrong ε, the ε scans after its Cauchy-loss starts
+    # included, and the second pass is taken
+    "lightly_damped_seed8": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25, seed=8)),
     # 3× the issue's friction: the load simulation's smooth sign is then 33× stiffer than the
     # sample rate (widening v_s instead had biased ε by 0.025°)
     "coulomb_strong": (REFERENCE_PLANT, dict(epsilon_deg=0.40, coulomb_motor_nm=0.03, coulomb_load_nm=0.03)),
@@ -96,7 +96,7 @@ def test_lightly_damped_plant_has_the_stated_damping() -> None:
 
 
 @pytest.mark.parametrize("name", ["coulomb", "current_loop", "lightly_damped", "lightly_damped_seed9",
-                                  "lightly_damped_seed5", "coulomb_strong", "light_current_loop",
+                                  "lightly_damped_seed8", "coulomb_strong", "light_current_loop",
                                   "light_coulomb"])
 def test_accuracy_under_unideal_effects(name: str) -> None:
     true, extra = CASES[name]
@@ -284,7 +284,7 @@ def test_a_second_pass_whose_search_confirms_the_first_is_not_refitted() -> None
     assert any("confirms" in n for n in res.notes)
     # this lightly damped plant's first pass ends at a wrong ε (0.33°): its search disagrees and
     # the refit is made — and taken
-    sp = _identified("lightly_damped_seed5").stage("joint").detail["second_pass"]
+    sp = _identified("lightly_damped_seed8").stage("joint").detail["second_pass"]
     assert "confirmed" not in sp and sp["taken"] is True
     assert abs(sp["first_epsilon_deg"] - 0.25) > 0.03 and abs(sp["epsilon_deg"] - 0.25) <= 0.02
 

@@ -672,7 +672,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
                      f"(scale {opt.robust_loss_ratio:g} × RMS τ_ref), then least squares without the bursts")
     if rescan is not None:
         e_end, e_cell = (math.degrees(e) for e in rescan)
-        notes.append(f"the first Cauchy-loss start ended at ε = {e_end:.3f}° on a plateau; ε scanned at its "
+        notes.append(f"a Cauchy-loss start ended at ε = {e_end:.3f}° on a plateau; ε scanned at its "
                      f"other parameters, the next start took the {e_cell:.2f}° cell")
     second_pass: dict[str, Any] | None = None
     if jf.dropped_fraction > opt.second_pass_dropped_fraction:

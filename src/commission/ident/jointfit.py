@@ -551,8 +551,8 @@ class JointFit:
     robust_loss: bool = False
     """Whether the starts switched to the Cauchy loss (``robust_scale_nm`` of :func:`joint_fit`)."""
     rescan_epsilon_rad: tuple[float, float] | None = None
-    """(ε where the first Cauchy-loss start ended, ε of the scanned cell the next start took)
-    [rad] when the ε scan of ``rescan_epsilons_rad`` found a better cell; else None."""
+    """(ε where the scanned Cauchy-loss start ended, ε of the scanned cell the next start took)
+    [rad] when an ε scan of ``rescan_epsilons_rad`` found a better cell; else None."""
 
 
 class _Counter:
@@ -909,16 +909,19 @@ def joint_fit(
     Costs, consensus and stops are judged on the RMS residual either way. Measured effect: see
     ``robust_loss_ratio`` in :class:`commission.ident.hybrid.IdentificationOptions`.
 
-    ``rescan_epsilons_rad`` (a grid of ε [rad]): after the first start with the Cauchy loss, the
-    RMS residual is evaluated at its end point with ε replaced by each grid value (the other
-    parameters held). When it is still on a plateau and a grid value does better, the next start
-    is that point (result: :attr:`JointFit.rescan_epsilon_rad`). The Cauchy loss gets the load
-    rates right through the impacts but can leave ε in a neighbouring minimum (ζ = 0.07 plant:
-    rates within 0.5 %, ε 0.33° for 0.25°); the scan at right rates ranks the true ε's cell first.
-    Measured (bench/bench_seeds.py, ζ = 0.07, against the same code without the scan): seeds
-    1–30 median 3.10 → 1.91 s, 29 of 30 within tolerance before and after; seeds 31–60 median
-    3.75 → 2.26 s, 29 → 30 of 30; no other bench plant's result changed. A scan after every
-    Cauchy-loss start instead: 58 of 60, no faster.
+    ``rescan_epsilons_rad`` (a grid of ε [rad]): after a start with the Cauchy loss, the RMS
+    residual is evaluated at its end point (a paused start's: its best point) with ε replaced by
+    each grid value (the other parameters held). When it is still on a plateau and a grid value
+    does better, the next start is that point (result: :attr:`JointFit.rescan_epsilon_rad`) and
+    there are no more scans; otherwise the next Cauchy start is scanned too (two scans at most).
+    The Cauchy loss gets the load rates right through the impacts but can leave ε in a
+    neighbouring minimum (ζ = 0.07 plant: rates within 0.5 %, ε 0.33° for 0.25°); the scan at
+    right rates ranks the true ε's cell first. Measured (bench/bench_seeds.py, ζ = 0.07, against
+    the same code without the scan): seeds 1–30 median 3.10 → 1.74 s, 29 of 30 within tolerance
+    before and after, second passes 23 → 9; seeds 31–60 median 3.75 → 2.24 s, 29 → 30 of 30,
+    second passes 24 → 15; no other bench plant's result changed. One scan only: 1.79 s and 12
+    second passes on seeds 1–30; a scan after every Cauchy start: 58 of 60 within tolerance; a
+    scan only at a start that ended (not paused): 2.71 s.
     """
     if jacobian not in ("broyden", "finite_difference"):
         raise ValueError(f"unknown jacobian {jacobian!r}")
@@ -1030,7 +1033,7 @@ def joint_fit(
     entries: list[list] = []  # [cost, result (None while paused), _Start, ε0, φ, lo, hi]
     queue: list[SearchCell | tuple[float, float] | _Rescan] = list(starts)
     scale_now = 0.0  # least squares until a start ends on a bursty plateau (robust_scale_nm)
-    rescanned = rescan_epsilons_rad is None  # once, after the first Cauchy-loss start
+    scans_left = 0 if rescan_epsilons_rad is None else 2  # until one finds a better cell
     rescan: tuple[float, float] | None = None
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
         qi = 0
@@ -1106,10 +1109,10 @@ def joint_fit(
                     scale_now = robust_scale_nm
                     queue.insert(qi, cell)
                     continue
-            # the first start with the Cauchy loss: when it still ends on a plateau, scan ε at
-            # its other parameters (see rescan_epsilons_rad); a paused start's point is its best
-            if not rescanned and scale_now > 0.0 and stop_cost_nm > 0.0:
-                rescanned = True
+            # a start with the Cauchy loss: when it still ends on a plateau, scan ε at its other
+            # parameters (see rescan_epsilons_rad); a paused start's point is its best
+            if scans_left > 0 and scale_now > 0.0 and stop_cost_nm > 0.0 and not isinstance(cell, _Rescan):
+                scans_left -= 1
                 x_end = (entry[1].x if entry[1] is not None else run.x).copy()
                 grid = [math.degrees(e) for e in np.unique(np.asarray(rescan_epsilons_rad, dtype=float))
                         if lo[3] <= math.degrees(e) <= hi[3]]
@@ -1121,6 +1124,7 @@ def joint_fit(
                     rescan = (math.radians(float(x_end[3])), math.radians(float(at[i_best][3])))
                     queue.insert(qi, _Rescan(at[i_best], lo, hi,
                                              p_end.B_l / max(p_end.B_m + p_end.B_l, 1e-300)))
+                    scans_left = 0
                     continue
             # consensus: two starts that end at the same cost and ε settle it
             if len(entries) >= 2 and consensus_rtol > 0:
