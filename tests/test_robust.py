@@ -232,6 +232,13 @@ def test_a_result_that_cannot_explain_the_windows_it_dropped_is_reported_as_appr
         assert f["residual_ratio_all_samples"] < 0.015 and f["approximate"] is False, name
     assert _identified("ideal").to_dict()["fit"]["residual_ratio_all_samples"] == \
         _identified("ideal").to_dict()["fit"]["residual_ratio"]
+    # the CLI's summary says both when samples were dropped
+    from commission.cli import _rows
+
+    rec = {"samples": 80000, "sample_rate_hz": FS, "duration_s": 10.0, "signals": ["torque_ref"],
+           "peak_torque_nm": 0.3, "peak_motor_velocity_rad_s": 17.0, "status": "complete"}
+    row = dict(_rows({"files": [], "source": "sim", "recording": rec, "identification": d}))["model fit"]
+    assert "dropped" in row and "over all of it" in row and "APPROXIMATE" in row
 
 
 def test_a_result_that_drops_a_fifth_of_the_record_is_reported_as_approximate() -> None:

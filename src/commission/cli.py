@@ -498,7 +498,10 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
         fit = ident.get("fit")
         if fit is not None:
             rows.append(("model fit", f"{100 * fit['residual_ratio']:.3g} % of the torque unexplained"
-                         + (f", {100 * fit['dropped_fraction']:.1f} % of the record dropped" if fit["dropped_fraction"] else "")
+                         + (f", {100 * fit['dropped_fraction']:.1f} % of the record dropped"
+                            + (f" ({100 * fit['residual_ratio_all_samples']:.2g} % over all of it)"
+                               if "residual_ratio_all_samples" in fit else "")
+                            if fit["dropped_fraction"] else "")
                          + ("  APPROXIMATE: the model does not reproduce this axis (notes: -v)"
                             if fit["approximate"] else "")))
     ctl = result.get("controller")
