@@ -384,12 +384,13 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                         xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, c, k, Ts, xl, vl, side, eps,
                                                                   sg * cj / kj)
                         exact = vn * sg * ivs > _SATURATED
-                if exact:
-                    pass
-                elif send == 1.0:  # with the interval's end a constant (measured: a few % faster)
-                    xn, vn, i0, i1, p1, dp1e = _rk4_contact(c, k, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
-                else:
-                    xn, vn, i0, i1, p1, dp1e = _rk4_contact(c, k, s, send, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+                if not exact:
+                    if send == 1.0:  # with the interval's end a constant (measured: a few % faster)
+                        xn, vn, i0, i1, p1, dp1e = _rk4_contact(c, k, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj,
+                                                                cj, ivs)
+                    else:
+                        xn, vn, i0, i1, p1, dp1e = _rk4_contact(c, k, s, send, Ts, xl, vl, side, eps, kj, dj, bj,
+                                                                cj, ivs)
                 if eps > 0.0:
                     xa, da = _motor(c, k, s)
                     p0 = side * (xa - xl - side * eps)
