@@ -719,14 +719,15 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
     # the same residual on every sample, the dropped windows included (= ratio when none were)
     ratio_all = ratio
     if jf.dropped_fraction > 0 and math.isfinite(ratio):
-        from .residual import torque_residual
+        from .residual import residual_vector
 
         p_ = jf.parameters
-        ratio_all = torque_residual(
+        v_all = residual_vector(
             problem, p_.J_m, p_.J_l, p_.B_m, p_.B_l, p_.K, p_.D, jf.epsilon_rad, load_weight_nm_per_rad=w_load,
             coulomb_motor_nm=jf.coulomb_motor_nm if jf.terms.coulomb_motor else 0.0,
             coulomb_load_nm=jf.coulomb_load_nm if jf.terms.coulomb_load else None,
-            lag_s=jf.lag_s if jf.terms.current_loop else 0.0).cost / ref
+            lag_s=jf.lag_s if jf.terms.current_loop else 0.0)
+        ratio_all = float(np.sqrt(np.mean(v_all * v_all))) / ref
     st.items[-1].detail["residual_ratio_all_samples"] = ratio_all
     if not math.isfinite(ratio):
         raise IdentificationError("the joint fit did not converge to finite parameters")

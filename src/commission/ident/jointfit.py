@@ -1030,6 +1030,36 @@ def joint_fit(
     eps_max_deg = math.degrees(epsilon_max_rad)
     n_motor = problem.acceleration_f.shape[0]
     rate = problem.sample_rate_hz / problem.decimation
+    def start_point(cell: SearchCell | tuple[float, float] | _Rescan
+                    ) -> tuple[float, float, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """(ε₀ [rad], φ, θ₀, lower, upper bounds) of a queued start."""
+        if isinstance(cell, _Rescan):  # a point of a previous start, in its bounds
+            return math.radians(float(cell.theta[3])), cell.phi, cell.theta, cell.lo, cell.hi
+        if isinstance(cell, SearchCell):
+            eps0, phi, rates = cell.epsilon_rad, cell.phi, cell.rates(start)
+            fcm0, lag0 = cell.coulomb_motor_nm, cell.lag_s
+        else:
+            eps0, phi = cell[0], cell[1]
+            rates = cell_rates(start, phi)
+            fcm0, lag0 = 0.0, 0.0
+        extra0: list[float] = []
+        lo_x: list[float] = []
+        hi_x: list[float] = []
+        if tm.coulomb_load:
+            # the search's motor column holds F_cm + F_cl: start with half of it on the load
+            extra0.append(max(0.5 * fcm0, 0.0) / max(start.J_l, 1e-12))
+            lo_x.append(0.0)
+            hi_x.append(1e7)
+        if tm.current_loop:
+            extra0.append(min(max(lag0, 0.0) * 1e6, 0.9 * _LAG_MAX_US))
+            lo_x.append(0.0)
+            hi_x.append(_LAG_MAX_US)
+        th0 = np.array([math.log(rates.omega2), math.log(rates.d), math.log(rates.b),
+                        min(math.degrees(eps0), eps_max_deg)] + extra0)
+        lo = np.concatenate((th0[:3] - 4.0, [0.0], lo_x))
+        hi = np.concatenate((th0[:3] + 4.0, [eps_max_deg], hi_x))
+        return eps0, phi, th0, lo, hi
+
     entries: list[list] = []  # [cost, result (None while paused), _Start, ε0, φ, lo, hi]
     queue: list[SearchCell | tuple[float, float] | _Rescan] = list(starts)
     scale_now = 0.0  # least squares until a start ends on a bursty plateau (robust_scale_nm)
@@ -1040,33 +1070,7 @@ def joint_fit(
         while qi < len(queue):
             cell = queue[qi]
             qi += 1
-            if isinstance(cell, _Rescan):  # a point of a previous start, in its bounds
-                eps0, phi = math.radians(float(cell.theta[3])), cell.phi
-                th0, lo, hi = cell.theta, cell.lo, cell.hi
-            else:
-                if isinstance(cell, SearchCell):
-                    eps0, phi, rates = cell.epsilon_rad, cell.phi, cell.rates(start)
-                    fcm0, lag0 = cell.coulomb_motor_nm, cell.lag_s
-                else:
-                    eps0, phi = cell[0], cell[1]
-                    rates = cell_rates(start, phi)
-                    fcm0, lag0 = 0.0, 0.0
-                extra0: list[float] = []
-                lo_x: list[float] = []
-                hi_x: list[float] = []
-                if tm.coulomb_load:
-                    # the search's motor column holds F_cm + F_cl: start with half of it on the load
-                    extra0.append(max(0.5 * fcm0, 0.0) / max(start.J_l, 1e-12))
-                    lo_x.append(0.0)
-                    hi_x.append(1e7)
-                if tm.current_loop:
-                    extra0.append(min(max(lag0, 0.0) * 1e6, 0.9 * _LAG_MAX_US))
-                    lo_x.append(0.0)
-                    hi_x.append(_LAG_MAX_US)
-                th0 = np.array([math.log(rates.omega2), math.log(rates.d), math.log(rates.b),
-                                min(math.degrees(eps0), eps_max_deg)] + extra0)
-                lo = np.concatenate((th0[:3] - 4.0, [0.0], lo_x))
-                hi = np.concatenate((th0[:3] + 4.0, [eps_max_deg], hi_x))
+            eps0, phi, th0, lo, hi = start_point(cell)
             th0 = np.clip(th0, lo + 1e-9, hi - 1e-9)
 
             jac = new_jacobian(hi)
@@ -1117,10 +1121,11 @@ def joint_fit(
                 grid = [math.degrees(e) for e in np.unique(np.asarray(rescan_epsilons_rad, dtype=float))
                         if lo[3] <= math.degrees(e) <= hi[3]]
                 at = [x_end] + [_with_eps(x_end, e) for e in grid]
-                costs = list(pool.map(lambda t: _rms(pfit(t).residual), at))
+                fits = list(pool.map(pfit, at))
+                costs = [_rms(f.residual) for f in fits]
                 i_best = int(np.argmin(costs))
                 if i_best > 0 and costs[0] > _PLATEAU_FACTOR * stop_cost_nm:
-                    p_end = pfit(x_end).parameters
+                    p_end = fits[0].parameters
                     rescan = (math.radians(float(x_end[3])), math.radians(float(at[i_best][3])))
                     queue.insert(qi, _Rescan(at[i_best], lo, hi,
                                              p_end.B_l / max(p_end.B_m + p_end.B_l, 1e-300)))
