@@ -86,6 +86,20 @@ def test_a_backlash_beyond_the_search_range_extends_the_range() -> None:
     assert _identified("reference").stage("search").detail["extended_to_deg"] is None
 
 
+def test_a_backlash_far_beyond_the_range_is_found_by_the_second_pass() -> None:
+    # ε = 3° (a worn gearbox), the default range up to 1°: the start's search stops at a local
+    # minimum (extended to 2°, the first pass ends near 1.7° dropping 4.5 %); from the first
+    # pass's parameters, which are right, the second pass's cells beyond the range find it.
+    # It used to end at 0.74°, flagged approximate
+    res = identify(_record(REFERENCE_PLANT, 3.0))
+    assert abs(res.epsilon_deg - 3.0) <= 0.01
+    _check(res, REFERENCE_PLANT, 3.0, 1.0)
+    joint = res.stage("joint").detail
+    assert joint["second_pass"]["taken"] and joint["dropped_fraction"] == 0.0
+    assert not joint["approximate"]
+    assert any("lies beyond the range" in n for n in res.notes)
+
+
 def test_no_backlash_is_reported_as_such() -> None:
     res = _identified("no_backlash")
     assert res.epsilon_deg <= 0.02

@@ -522,6 +522,29 @@ def _epsilon_candidates(opt: IdentificationOptions, coarse: bool,
 #: default range up to 1°): best cell 0.96°, the fit ended at 0.83° (the gap crossings dropped as
 #: "bursts", residual 0.09 % on the rest, nothing flagged); searched up to 2°: ε = 1.5000° in 1.9 s.
 _EPSILON_EXTEND_MAX_DEG = 16.0
+#: Ratio of the second pass's ε cells beyond the range (up to ``_EPSILON_EXTEND_MAX_DEG``): ~57
+#: more cells from 1°, 0.1–0.2 s. Measured (reference plant, range up to 1°): ε = 2, 3, 5, 8° ended
+#: at 0.22, 0.74, 1.69, 0.19° (the start's search stops in a local minimum, or extends only to
+#: 2°); the first pass's linear parameters are right nevertheless, and from them the wide cells
+#: find each ε exactly. ζ = 0.07 seeds 1–30 and 40 swept plants: no other result changed.
+_WIDE_RATIO = 1.05
+
+
+def _extend_upward(search: Any, eps_cands: NDArray[np.float64], hi_deg: float, opt: IdentificationOptions,
+                   search_more: Any) -> tuple[Any, NDArray[np.float64], float]:
+    """Double the upper bound of an ε grid search (to at most ``_EPSILON_EXTEND_MAX_DEG``) while its
+    best cell lies within 2.5 grid steps of the top; ``search_more(ε [rad])`` searches the new
+    cells. Returns (the combined search, all its ε cells [rad], the final upper bound [deg])."""
+    from .jointfit import combine_searches
+
+    step = math.radians(opt.epsilon_resolution_deg * (5 if opt.search is SearchMethod.COARSE else 1))
+    while hi_deg < _EPSILON_EXTEND_MAX_DEG and search.best[0].epsilon_rad >= float(np.max(eps_cands)) - 2.5 * step:
+        more = _epsilon_candidates(opt, coarse=opt.search is SearchMethod.COARSE, bounds_deg=(hi_deg, 2.0 * hi_deg))
+        more = more[more > np.max(eps_cands) + 1e-12]
+        eps_cands = np.concatenate((eps_cands, more))
+        search = combine_searches((search, search_more(more)), eps_cands, opt.starts)
+        hi_deg *= 2.0
+    return search, eps_cands, hi_deg
 
 
 def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) -> Identification:
@@ -597,20 +620,15 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
                      "in all) on the load side of the simulation")
     # a best cell at the top of the range: the backlash may be wider than the range (see the constant)
     eps_hi = opt.epsilon_bounds_deg[1]
-    coarse = opt.search is SearchMethod.COARSE
-    step = math.radians(opt.epsilon_resolution_deg * (5 if coarse else 1))
     extended_deg: float | None = None
-    while (method == "grid" and eps_hi < _EPSILON_EXTEND_MAX_DEG
-           and best.epsilon_rad >= float(np.max(eps_cands)) - 2.5 * step):
-        more = _epsilon_candidates(opt, coarse=coarse, bounds_deg=(eps_hi, 2.0 * eps_hi))
-        more = more[more > np.max(eps_cands) + 1e-12]
-        part = searched(splits, fixed_now, more)
-        eps_cands = np.concatenate((eps_cands, more))
-        search = combine_searches((search, part), eps_cands, opt.starts)
+    if method == "grid":
+        n0 = search.evaluations
+        search, eps_cands, eps_hi = _extend_upward(search, eps_cands, eps_hi, opt,
+                                                   lambda more: searched(splits, fixed_now, more))
         best = search.best[0]
-        evaluations += part.evaluations
-        eps_hi = extended_deg = 2.0 * eps_hi
-    if extended_deg is not None:
+        evaluations += search.evaluations - n0
+    if eps_hi > opt.epsilon_bounds_deg[1]:
+        extended_deg = eps_hi
         eps_coarse = eps_cands
         notes.append(f"ε search range extended to {extended_deg:g}°: the best cell of the configured range "
                      f"(up to {opt.epsilon_bounds_deg[1]:g}°) lay at its top")
@@ -676,7 +694,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
                      f"other parameters, the next start took the {e_cell:.2f}° cell")
     second_pass: dict[str, Any] | None = None
     if jf.dropped_fraction > opt.second_pass_dropped_fraction:
-        jf, second_pass = _second_pass(problem, jf, eps_coarse, opt, eps_max, w_load, ref, notes)
+        jf, second_pass, eps_max = _second_pass(problem, jf, eps_coarse, opt, eps_max, w_load, ref, notes)
         joint_evaluations += int(second_pass["evaluations"])
     selection: dict[str, Any] | None = None
     if fit_terms.any:
@@ -959,8 +977,11 @@ _FEWER_DROPPED = 0.9
 
 
 def _second_pass(problem: Any, jf: Any, eps_cands: Any, opt: IdentificationOptions,
-                 eps_max: float, w_load: float, ref: float, notes: list[str]) -> tuple[Any, dict[str, Any]]:
+                 eps_max: float, w_load: float, ref: float, notes: list[str]) -> tuple[Any, dict[str, Any], float]:
     """Search ε again around the first joint fit, then fit again on the whole record.
+
+    Returns (the fit taken, the pass's detail, the ε bound [rad] for later refits: raised when
+    the search's range was extended).
 
     Measured (1 kHz current loop, reference plant): from the frequency-domain start, which the
     lag biases, the first fit stalls at 80× the noise floor; the burst mask then drops the
@@ -994,9 +1015,25 @@ def _second_pass(problem: Any, jf: Any, eps_cands: Any, opt: IdentificationOptio
 
     p = jf.parameters
     phi = p.B_l / max(p.B_m + p.B_l, 1e-300)
-    s = search_starts(problem, p, eps_cands, (phi,), (1.0,), method="grid", n_best=opt.starts,
-                      threads=opt.threads, load_weight_nm_per_rad=w_load, terms=jf.terms,
-                      fixed_terms=(jf.coulomb_load_nm, jf.lag_s))
+
+    def searched(eps: Any) -> Any:
+        return search_starts(problem, p, eps, (phi,), (1.0,), method="grid", n_best=opt.starts,
+                             threads=opt.threads, load_weight_nm_per_rad=w_load, terms=jf.terms,
+                             fixed_terms=(jf.coulomb_load_nm, jf.lag_s))
+
+    # from the first pass's parameters the ε search can see a backlash wider than the range the
+    # start's search saw: its cells go on geometrically (_WIDE_RATIO) up to _EPSILON_EXTEND_MAX_DEG
+    hi_deg = 0.5 * math.degrees(eps_max)
+    eps_cands = np.asarray(eps_cands, dtype=float)
+    wide = np.radians(hi_deg * _WIDE_RATIO ** np.arange(1, int(math.log(_EPSILON_EXTEND_MAX_DEG / hi_deg)
+                                                                   / math.log(_WIDE_RATIO)) + 1))
+    wide = wide[wide > np.max(eps_cands) + 1e-12]
+    s = searched(np.concatenate((eps_cands, wide)))
+    if s.best[0].epsilon_rad > math.radians(hi_deg):
+        eps_max = max(eps_max, 2.0 * s.best[0].epsilon_rad)
+        notes.append(f"second pass: ε searched up to {_EPSILON_EXTEND_MAX_DEG:g}° from the first fit's parameters; "
+                     f"its best cell {math.degrees(s.best[0].epsilon_rad):.2f}° lies beyond the range the "
+                     f"start's search covered (up to {hi_deg:g}°)")
     # the search confirms the first pass when its best cell is the grid cell nearest the first
     # pass's ε: the refit would start where the first pass ended (measured: see the docstring)
     grid = np.unique(np.asarray(eps_cands, dtype=float))
@@ -1006,7 +1043,7 @@ def _second_pass(problem: Any, jf: Any, eps_cands: Any, opt: IdentificationOptio
                      "no refit")
         return jf, {"evaluations": s.evaluations, "epsilon_deg": math.degrees(jf.epsilon_rad), "taken": False,
                     "confirmed": True, "first_epsilon_deg": math.degrees(jf.epsilon_rad),
-                    "first_dropped_fraction": jf.dropped_fraction}
+                    "first_dropped_fraction": jf.dropped_fraction}, eps_max
     j2 = joint_fit(problem, p, s.best, epsilon_max_rad=eps_max, max_nfev=opt.max_fit_evaluations,
                    threads=opt.threads, load_weight_nm_per_rad=w_load, terms=jf.terms,
                    stop_cost_nm=opt.good_fit_ratio * ref, jacobian=opt.jacobian, consensus_rtol=0.0)
@@ -1030,8 +1067,8 @@ def _second_pass(problem: Any, jf: Any, eps_cands: Any, opt: IdentificationOptio
                      f"explains {100 * (1 - j2.dropped_fraction):.1f} % of the record instead of "
                      f"{100 * (1 - jf.dropped_fraction):.1f} % (first pass ε̂ = "
                      f"{math.degrees(jf.epsilon_rad):.3f}°)")
-        return j2, info
-    return jf, info
+        return j2, info, eps_max
+    return jf, info, eps_max
 
 
 def _refit_at(problem: Any, jf: Any, terms: Any, opt: IdentificationOptions, eps_max: float,
