@@ -96,6 +96,7 @@ def test_a_backlash_far_beyond_the_range_is_found_by_the_second_pass() -> None:
     _check(res, REFERENCE_PLANT, 3.0, 1.0)
     joint = res.stage("joint").detail
     assert joint["second_pass"]["taken"] and joint["dropped_fraction"] == 0.0
+    assert joint["second_pass"]["searched_to_deg"] > 15.0
     assert not joint["approximate"]
     assert any("lies beyond the range" in n for n in res.notes)
 

@@ -290,6 +290,8 @@ def test_a_second_pass_whose_search_confirms_the_first_is_not_refitted() -> None
     assert sp is not None and sp["confirmed"] is True and sp["taken"] is False
     assert abs(sp["first_epsilon_deg"] - 0.40) <= 0.02
     assert any("confirms" in n for n in res.notes)
+    # a first pass that explains the whole record is not searched for a wider ε (the default range)
+    assert sp["searched_to_deg"] == 1.0
     # this lightly damped plant's first pass ends at a wrong ε (0.33°): its search disagrees and
     # the refit is made — and taken
     sp = _identified("lightly_damped_seed8").stage("joint").detail["second_pass"]

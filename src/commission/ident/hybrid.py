@@ -1045,6 +1045,7 @@ def _second_pass(problem: Any, jf: Any, eps_cands: Any, opt: IdentificationOptio
         wide = np.radians(hi_deg * _WIDE_RATIO ** np.arange(1, n_wide + 1))
         wide = wide[wide > np.max(eps_cands) + 1e-12]
     s = searched(np.concatenate((eps_cands, wide)))
+    searched_to = math.degrees(float(np.max(wide))) if wide.size else hi_deg
     if s.best[0].epsilon_rad > math.radians(hi_deg):
         eps_max = max(eps_max, 2.0 * s.best[0].epsilon_rad)
         notes.append(f"second pass: ε searched up to {_EPSILON_EXTEND_MAX_DEG:g}° from the first fit's parameters; "
@@ -1059,7 +1060,7 @@ def _second_pass(problem: Any, jf: Any, eps_cands: Any, opt: IdentificationOptio
                      "no refit")
         return jf, {"evaluations": s.evaluations, "epsilon_deg": math.degrees(jf.epsilon_rad), "taken": False,
                     "confirmed": True, "first_epsilon_deg": math.degrees(jf.epsilon_rad),
-                    "first_dropped_fraction": jf.dropped_fraction}, eps_max
+                    "first_dropped_fraction": jf.dropped_fraction, "searched_to_deg": searched_to}, eps_max
     j2 = joint_fit(problem, p, s.best, epsilon_max_rad=eps_max, max_nfev=opt.max_fit_evaluations,
                    threads=opt.threads, load_weight_nm_per_rad=w_load, terms=jf.terms,
                    stop_cost_nm=opt.good_fit_ratio * ref, jacobian=opt.jacobian, consensus_rtol=0.0)
@@ -1077,7 +1078,8 @@ def _second_pass(problem: Any, jf: Any, eps_cands: Any, opt: IdentificationOptio
     info = {"evaluations": s.evaluations + j2.evaluations, "epsilon_deg": math.degrees(j2.epsilon_rad),
             "common_rms_nm": [rms1, rms2],
             "dropped_fraction": j2.dropped_fraction, "cost_nm": j2.cost, "taken": bool(take),
-            "first_epsilon_deg": math.degrees(jf.epsilon_rad), "first_dropped_fraction": jf.dropped_fraction}
+            "first_epsilon_deg": math.degrees(jf.epsilon_rad), "first_dropped_fraction": jf.dropped_fraction,
+            "searched_to_deg": searched_to}
     if take:
         notes.append(f"second pass (ε searched again from the first fit's parameters) taken: it "
                      f"explains {100 * (1 - j2.dropped_fraction):.1f} % of the record instead of "
