@@ -525,10 +525,11 @@ _EPSILON_EXTEND_MAX_DEG = 16.0
 #: Ratio of the second pass's ε cells beyond the range (up to ``_EPSILON_EXTEND_MAX_DEG``), searched
 #: when the first pass leaves more than ``_APPROXIMATE_ALL_SAMPLES`` over all samples: ~57 more
 #: cells from 1°, 0.1–0.2 s (0.3–0.4 s with load friction simulated, whose second pass, run for
-#: the stick windows it drops, does not need them: first pass at 0.1–0.6 %). Measured (reference plant, range up to 1°): ε = 2, 3, 5, 8° ended
-#: at 0.22, 0.74, 1.69, 0.19° (the start's search stops in a local minimum, or extends only to
-#: 2°); the first pass's linear parameters are right nevertheless, and from them the wide cells
-#: find each ε exactly. ζ = 0.07 seeds 1–30 and 40 swept plants: no other result changed.
+#: the stick windows it drops, does not need them: first pass at 0.1–0.6 %). Measured (reference
+#: plant, range up to 1°): ε = 2, 3, 5, 8° ended at 0.22, 0.74, 1.69, 0.19° (the start's search
+#: stops in a local minimum, or extends only to 2°); the first pass's linear parameters are right
+#: nevertheless, and from them the wide cells find each ε exactly. ζ = 0.07 seeds 1–30 and 40
+#: swept plants: no other result changed.
 _WIDE_RATIO = 1.05
 
 
@@ -1050,7 +1051,7 @@ def _second_pass(problem: Any, jf: Any, eps_cands: Any, opt: IdentificationOptio
     searched_to = math.degrees(float(np.max(wide))) if wide.size else hi_deg
     if s.best[0].epsilon_rad > math.radians(hi_deg):
         eps_max = max(eps_max, 2.0 * s.best[0].epsilon_rad)
-        notes.append(f"second pass: ε searched up to {_EPSILON_EXTEND_MAX_DEG:g}° from the first fit's parameters; "
+        notes.append(f"second pass: ε searched up to {searched_to:.3g}° from the first fit's parameters; "
                      f"its best cell {math.degrees(s.best[0].epsilon_rad):.2f}° lies beyond the range the "
                      f"start's search covered (up to {hi_deg:g}°)")
     # the search confirms the first pass when its best cell is the grid cell nearest the first
