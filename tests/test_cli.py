@@ -30,7 +30,8 @@ RESULT_KEYS = {
     "modes": {"f_resonance_hz", "zeta_resonance", "f_antiresonance_hz", "zeta_antiresonance"},
     "transfer_function": {"num", "den"},
     "source": {"file", "sample_rate_hz", "samples"},
-    "fit": {"residual_ratio", "residual_ratio_all_samples", "approximate", "dropped_fraction", "robust_loss"},
+    "fit": {"residual_ratio", "residual_ratio_all_samples", "approximate", "dropped_fraction", "robust_loss",
+            "refined_by_predictor"},
 }
 
 
