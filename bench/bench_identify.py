@@ -75,6 +75,9 @@ FULL = [
     Case("soft heavy 25Hz", 4.0, 25, 0.17, 0.60, B_l=1.5e-2),
     Case("soft heavy 20Hz", 5.0, 20, 0.15, 0.30),
     Case("ref zeta=0.07 e=0.25", 0.4, 65.4, 0.07, 0.25),
+    # lightly damped, impact-rich: the plain fit cannot follow them (the predictor stage can)
+    Case("mid 100Hz zeta=0.05", 1.0, 100, 0.05, 0.20),
+    Case("ratio2 60Hz zeta=0.07", 2.0, 60, 0.07, 0.30),
     Case("reference +coulomb", 0.4, 65.4, 0.167, 0.40, coulomb_nm=0.01),
     Case("reference +coulomb 0.03", 0.4, 65.4, 0.167, 0.40, coulomb_nm=0.03),
     Case("reference +lag1k", 0.4, 65.4, 0.167, 0.40, lag_hz=1000.0),
@@ -135,6 +138,7 @@ def run(case: Case, method: Method, compare: bool) -> dict:
         row["ratio"] = j.get("residual_ratio", math.nan)
         row["ratio_all"] = j.get("residual_ratio_all_samples", math.nan)
         row["approximate"] = bool(j.get("approximate", False))
+        row["refined"] = bool(j.get("refined_by_predictor", False))
         row["terms"] = "".join(c for t, c in (("coulomb_motor", "m"), ("coulomb_load", "l"),
                                               ("current_loop", "c")) if t in j.get("terms", [])) or "-"
         if compare:
@@ -175,17 +179,18 @@ def main(argv: list[str] | None = None) -> int:
             _print_row(row)
             sys.stdout.flush()
     print()
-    print("stage times [s] (hybrid): frd / tffit / start / search / joint / check; total wall (without the "
-          "search comparison), cpu (with it)")
+    print("stage times [s] (hybrid): frd / tffit / start / search / joint / predictor / check; total wall "
+          "(without the search comparison), cpu (with it)")
     for r in rows:
         if r["method"] == "hybrid" and "stages" in r:
             s = r["stages"]
             print(f"  {r['case']:<20} " + " / ".join(f"{s.get(k, 0):.2f}" for k in
-                  ("frd", "tffit", "start", "search", "joint", "check"))
+                  ("frd", "tffit", "start", "search", "joint", "predictor", "check"))
                   + f";  {r['wall']:.2f}, {r['cpu']:.2f}  (joint evals {r.get('evals_joint')}, "
                   f"dropped {100 * r.get('dropped', 0):.1f} %, residual {100 * r.get('ratio', math.nan):.3f} % "
                   f"of τ_ref, {100 * r.get('ratio_all', math.nan):.3f} % on all samples"
-                  f"{', approximate' if r.get('approximate') else ''})")
+                  f"{', approximate' if r.get('approximate') else ''}"
+                  f"{', refined by the predictor' if r.get('refined') else ''})")
     hyb = [r for r in rows if r["method"] == "hybrid" and "stages" in r]
     if hyb:
         walls = sorted(r["wall"] for r in hyb)
