@@ -250,6 +250,8 @@ def test_a_load_state_predictor_refines_lightly_damped_plants_the_plain_fit_cann
     assert fit["residual_ratio"] < 0.001 and fit["dropped_fraction"] == 0.0
     assert res.stage("predictor").detail["taken"] is True
     assert any(n.startswith("result refined with a load-state predictor") for n in res.notes)
+    assert not any(n.startswith("approximate result") for n in res.notes)
+    assert any(n.startswith("plain fit (before the predictor refit) approximate") for n in res.notes)
     lo, hi = res.epsilon_interval_rad
     assert lo <= res.epsilon_rad <= hi and hi - lo < math.radians(0.02)
 

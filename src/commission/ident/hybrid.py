@@ -792,6 +792,9 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
         st.done("predictor", **pdetail)
         if refined is not None:
             jf, params, approximate = refined, refined.parameters, False
+            # the approximate rules' notes were about the plain fit, which is no longer the result
+            notes[:] = [("plain fit (before the predictor refit) approximate: " + n[len("approximate result: "):])
+                        if n.startswith("approximate result: ") else n for n in notes]
             # the joint stage's figures are those of the result (the plain fit's stay in its other fields)
             joint_detail.update(approximate=False, refined_by_predictor=True, terms=list(refined.terms.names()),
                                 residual_ratio=pdetail["residual_ratio"],
