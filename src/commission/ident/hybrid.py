@@ -760,26 +760,27 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
     # Measured (bench/bench_identify.py): plants the model describes end at 0.03–0.1 % of τ_ref;
     # the impact-rich stiff plants at 2–17 %, with K 28–72 % off. Past 5× the good-fit level
     # (0.5 % by default, the tuning's backlash-compensation gate) the result is said approximate.
-    approximate = ratio > _APPROXIMATE_FACTOR * opt.good_fit_ratio
-    if approximate:
-        notes.append(f"approximate result: the model leaves {100 * ratio:.2f} % of the torque unexplained, "
-                     f"{ratio / max(opt.good_fit_ratio, 1e-300):.0f}× the good-fit level — the axis has "
-                     "dynamics the model does not reproduce (e.g. chaotic impacts of a light, stiff, "
-                     "lightly damped load); the parameters, ε included, may be biased by tens of percent")
+    why: str | None = None  # the approximate rule that holds, as a note's text
+    if ratio > _APPROXIMATE_FACTOR * opt.good_fit_ratio:
+        why = (f"the model leaves {100 * ratio:.2f} % of the torque unexplained, "
+               f"{ratio / max(opt.good_fit_ratio, 1e-300):.0f}× the good-fit level — the axis has "
+               "dynamics the model does not reproduce (e.g. chaotic impacts of a light, stiff, "
+               "lightly damped load); the parameters, ε included, may be biased by tens of percent")
     elif jf.dropped_fraction > _APPROXIMATE_DROPPED:
-        approximate = True
-        notes.append(f"approximate result: the model reproduces the record only with "
-                     f"{100 * jf.dropped_fraction:.0f} % of it dropped (more than "
-                     f"{100 * _APPROXIMATE_DROPPED:.0f} %) — e.g. a lightly damped load whose impacts it "
-                     "cannot follow; ε may be off by tenths of a degree")
+        why = (f"the model reproduces the record only with "
+               f"{100 * jf.dropped_fraction:.0f} % of it dropped (more than "
+               f"{100 * _APPROXIMATE_DROPPED:.0f} %) — e.g. a lightly damped load whose impacts it "
+               "cannot follow; ε may be off by tenths of a degree")
     elif ratio_all > _APPROXIMATE_ALL_SAMPLES:
-        approximate = True
-        notes.append(f"approximate result: the model explains the samples it kept ({100 * ratio:.2f} % of the "
-                     f"torque left) but not the {100 * jf.dropped_fraction:.0f} % it dropped: "
-                     f"{100 * ratio_all:.1f} % left over the whole record (more than "
-                     f"{100 * _APPROXIMATE_ALL_SAMPLES:.1f} %) — e.g. a lightly damped load whose impacts it "
-                     "cannot follow; ε may be off by tenths of a degree")
+        why = (f"the model explains the samples it kept ({100 * ratio:.2f} % of the "
+               f"torque left) but not the {100 * jf.dropped_fraction:.0f} % it dropped: "
+               f"{100 * ratio_all:.1f} % left over the whole record (more than "
+               f"{100 * _APPROXIMATE_ALL_SAMPLES:.1f} %) — e.g. a lightly damped load whose impacts it "
+               "cannot follow; ε may be off by tenths of a degree")
+    approximate = why is not None
     st.items[-1].detail["approximate"] = approximate
+    refined = None
+    pdetail: dict[str, Any] = {}
     # a fit that ended with a negative damping (the projection has no sign constraint) is no
     # result either: the predictor refit starts it from the damping floor (measured: J_l/J_m = 2,
     # 60 Hz, ζ 0.07, seed 7: B_m −8e-4, refined to ε within 0.001°)
@@ -792,24 +793,28 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
         st.done("predictor", **pdetail)
         if refined is not None:
             jf, params, approximate = refined, refined.parameters, False
-            # the approximate rules' notes were about the plain fit, which is no longer the result
-            notes[:] = [("plain fit (before the predictor refit) approximate: " + n[len("approximate result: "):])
-                        if n.startswith("approximate result: ") else n for n in notes]
             # the joint stage's figures are those of the result (the plain fit's stay in its other fields)
             joint_detail.update(approximate=False, refined_by_predictor=True, terms=list(refined.terms.names()),
                                 residual_ratio=pdetail["residual_ratio"],
                                 residual_ratio_all_samples=pdetail["residual_ratio"], dropped_fraction=0.0)
-            notes.append(f"result refined with a load-state predictor: the fit left the record unexplained "
-                         f"(the approximate rules above), its load re-simulated from the motor position "
-                         f"drifts from the real one across the impacts; with the simulated load corrected "
-                         f"from the motor equation after every sample the fit leaves "
-                         f"{100 * pdetail['residual_ratio']:.3f} % of the torque (ε {pdetail['epsilon_deg']:.4f}°, "
-                         f"was {pdetail['plain_epsilon_deg']:.4f}°)"
-                         + (f"; without the terms it had kept ({', '.join(pdetail['terms_dropped'])})"
-                            if pdetail["terms_dropped"] else ""))
-        elif "skipped" not in pdetail:
-            notes.append(f"a load-state predictor refit left {100 * pdetail['residual_ratio']:.2f} % of the "
-                         f"torque (more than the good-fit level {100 * opt.good_fit_ratio:.2f} %): not taken")
+    if why is not None:
+        # once refined, the rule speaks of the plain fit, which is no longer the result
+        notes.append(("plain fit (before the predictor refit) approximate: " if refined is not None
+                      else "approximate result: ") + why)
+    if refined is not None:
+        notes.append(f"result refined with a load-state predictor: the fit left the record unexplained "
+                     f"(the approximate rules above), its load re-simulated from the motor position "
+                     f"drifts from the real one across the impacts; with the simulated load corrected "
+                     f"from the motor equation after every sample the fit leaves "
+                     f"{100 * pdetail['residual_ratio']:.3f} % of the torque (ε {pdetail['epsilon_deg']:.4f}°, "
+                     f"was {pdetail['plain_epsilon_deg']:.4f}°)"
+                     + (f"; without the terms it had kept ({', '.join(pdetail['terms_dropped'])})"
+                        if pdetail["terms_dropped"] else ""))
+    elif "residual_ratio" in pdetail:
+        notes.append(f"a load-state predictor refit left {100 * pdetail['residual_ratio']:.2f} % of the "
+                     f"torque (more than the good-fit level {100 * opt.good_fit_ratio:.2f} %): not taken")
+    elif "error" in pdetail:
+        notes.append(f"the load-state predictor refit failed ({pdetail['error']}): not taken")
     if not _physical(params):
         bad = ", ".join(f"{n} = {getattr(params, n):.3g}" for n in ("J_m", "J_l", "B_m", "B_l", "K", "D")
                         if getattr(params, n) < 0 or (n in ("J_m", "J_l", "K") and getattr(params, n) == 0))
@@ -1047,6 +1052,8 @@ def _predictor_refit(problem: Any, jf: Any, eps_cells: Any, eps_max: float, opt:
     plant) are dropped when the refit reaches the good-fit level without them, and a plant that
     needs them does not reach it. Skipped with a load encoder (no load-position block).
     """
+    from concurrent.futures import ThreadPoolExecutor
+
     from scipy.optimize import least_squares
 
     from .jointfit import ModelTerms
@@ -1064,47 +1071,62 @@ def _predictor_refit(problem: Any, jf: Any, eps_cells: Any, eps_max: float, opt:
         J_m, J_l, B_m, B_l, K, D = np.exp(z[:6])
         return TwoMassParameters(J_m=J_m, J_l=J_l, B_m=B_m, B_l=B_l, K=K, D=D), math.radians(z[6])
 
-    def fun(z: NDArray[np.float64]) -> NDArray[np.float64]:
+    calls = [0]
+    last: dict[bytes, NDArray[np.float64]] = {}  # the latest point's residual: its Jacobian's base
+
+    def residual_at(z: NDArray[np.float64]) -> NDArray[np.float64]:
         q, e = unpack(z)
         return predictor_residual(problem, q.J_m, q.J_l, q.B_m, q.B_l, q.K, q.D, e)
 
-    def jac(z: NDArray[np.float64]) -> NDArray[np.float64]:
-        # forward differences, the columns on opt.threads threads (the simulation releases the GIL)
-        from concurrent.futures import ThreadPoolExecutor
+    def fun(z: NDArray[np.float64]) -> NDArray[np.float64]:
+        calls[0] += 1
+        r = residual_at(z)
+        last.clear()
+        last[z.tobytes()] = r
+        return r
 
-        f0 = fun(z)
+    def jac(z: NDArray[np.float64]) -> NDArray[np.float64]:
+        # forward differences from the point least_squares has just evaluated, the columns on
+        # opt.threads threads (the simulation releases the GIL)
+        f0 = last.get(z.tobytes())
+        if f0 is None:
+            f0 = fun(z)
         steps = _PREDICTOR_DIFF_STEP * np.maximum(np.abs(z), 1.0)
 
         def column(i: int) -> NDArray[np.float64]:
             dz = z.copy()
             dz[i] += steps[i]
-            return (fun(dz) - f0) / steps[i]
+            return (residual_at(dz) - f0) / steps[i]
 
-        with ThreadPoolExecutor(max_workers=opt.threads) as pool:
-            return np.stack(list(pool.map(column, range(z.size))), axis=1)
+        calls[0] += z.size
+        return np.stack(list(pool.map(column, range(z.size))), axis=1)
+
+    def scan_cost(e_rad: float) -> float:
+        z = z0.copy()
+        z[6] = math.degrees(e_rad)
+        r = residual_at(z)
+        return float(np.sqrt(np.mean(r * r)))
 
     z0 = np.array([math.log(max(v, floor)) for v in (p.J_m, p.J_l, p.B_m, p.B_l, p.K, p.D)]
                   + [math.degrees(jf.epsilon_rad)])
-    # ε scanned first with the other parameters held: the plain fit's ε is the wrong one
-    scan = []
-    for e in np.asarray(eps_cells, dtype=float):
-        z = z0.copy()
-        z[6] = math.degrees(e)
-        r = fun(z)
-        scan.append(float(np.sqrt(np.mean(r * r))))
-    z0[6] = math.degrees(float(np.asarray(eps_cells, dtype=float)[int(np.argmin(scan))]))
+    cells = np.asarray(eps_cells, dtype=float)
     lo = np.array([-np.inf] * 6 + [0.0])
     hi = np.array([np.inf] * 6 + [math.degrees(eps_max)])
-    try:
-        fit = least_squares(fun, np.clip(z0, lo, hi), jac=jac, bounds=(lo, hi), method="trf",
-                            x_scale=np.array([0.1] * 6 + [0.05]), max_nfev=_PREDICTOR_MAX_NFEV)
-    except (ValueError, np.linalg.LinAlgError) as err:  # a non-finite simulation
-        return None, {"evaluations": len(scan), "error": str(err)}
+    with ThreadPoolExecutor(max_workers=opt.threads) as pool:
+        # ε scanned first with the other parameters held: the plain fit's ε is the wrong one
+        scan = list(pool.map(scan_cost, cells))
+        calls[0] += len(scan)
+        z0[6] = math.degrees(float(cells[int(np.argmin(scan))]))
+        try:
+            fit = least_squares(fun, np.clip(z0, lo, hi), jac=jac, bounds=(lo, hi), method="trf",
+                                x_scale=np.array([0.1] * 6 + [0.05]), max_nfev=_PREDICTOR_MAX_NFEV)
+        except (ValueError, np.linalg.LinAlgError) as err:  # a non-finite simulation
+            return None, {"evaluations": calls[0], "error": str(err)}
     q, eps = unpack(fit.x)
     r = fit.fun
     n = r.size
     rms = float(np.sqrt(np.mean(r * r)))
-    evaluations = len(scan) + int(fit.nfev) + 8 * int(fit.njev or 0)  # a Jacobian: its point + 7 columns
+    evaluations = calls[0]
     detail: dict[str, Any] = {"evaluations": evaluations, "residual_ratio": rms / ref,
                               "epsilon_deg": math.degrees(eps), "plain_epsilon_deg": math.degrees(jf.epsilon_rad),
                               "scan_best_epsilon_deg": float(z0[6]), "parameters": q.as_dict(),
@@ -1207,7 +1229,7 @@ def _second_pass(problem: Any, jf: Any, eps_cands: Any, opt: IdentificationOptio
                      f"start's search covered (up to {hi_deg:g}°)")
     # the search confirms the first pass when its best cell is the grid cell nearest the first
     # pass's ε: the refit would start where the first pass ended (measured: see the docstring)
-    grid = np.unique(np.asarray(eps_cands, dtype=float))
+    grid = np.unique(eps_cands)
     if s.best[0].epsilon_rad == grid[np.argmin(np.abs(grid - jf.epsilon_rad))]:
         notes.append(f"second pass: ε searched again from the first fit's parameters confirms "
                      f"{math.degrees(jf.epsilon_rad):.3f}° (best cell {math.degrees(s.best[0].epsilon_rad):.2f}°); "
