@@ -74,6 +74,9 @@ CASES: dict[str, tuple[TwoMassParameters, dict]] = {
                                                      K=(2 * math.pi * 60) ** 2 * 2 * 4.78e-4 / 3,
                                                      D=2 * 0.07 * 2 * math.pi * 60 / (1 / 4.78e-4 + 1 / (2 * 4.78e-4))),
                                    dict(epsilon_deg=0.30, seed=7)),
+    # 30× the torque noise of the other cases: the residual at the true parameters is 0.5 % of
+    # τ_ref, over the approximate rule's level, and it is white noise
+    "noisy": (REFERENCE_PLANT, dict(epsilon_deg=0.40, torque_noise_nm=3e-3, seed=5)),
     # small friction on the load only: below the search's Coulomb limit, so screened at first
     "small_load_coulomb": (REFERENCE_PLANT, dict(epsilon_deg=0.40, coulomb_load_nm=0.002)),
     "impact_rich": (TwoMassParameters(J_m=4.78e-4, J_l=0.956e-4, B_m=0.84e-2, B_l=0.3e-2, K=125.8,
@@ -110,6 +113,15 @@ def test_lightly_damped_plant_has_the_stated_damping() -> None:
                                   "light_coulomb"])
 def test_accuracy_under_unideal_effects(name: str) -> None:
     _assert_done_criteria(_identified(name), name)
+
+
+def _model_fit_row(identification: dict) -> str:
+    """The CLI summary's "model fit" row for a result.json identification section."""
+    from commission.cli import _rows
+
+    rec = {"samples": 80000, "sample_rate_hz": FS, "duration_s": 10.0, "signals": ["torque_ref"],
+           "peak_torque_nm": 0.3, "peak_motor_velocity_rad_s": 17.0, "status": "complete"}
+    return dict(_rows({"files": [], "source": "sim", "recording": rec, "identification": identification}))["model fit"]
 
 
 def _assert_done_criteria(res: Identification, name: str) -> None:
@@ -284,6 +296,33 @@ def test_a_fit_that_leaves_its_dropped_windows_unexplained_is_refined_though_not
     assert all(s.name != "predictor" for s in _identified("coulomb").stages)
 
 
+def test_a_residual_that_is_white_noise_does_not_make_the_result_approximate() -> None:
+    from commission.tuning.design import TuningOptions, design
+
+    res = _identified("noisy")
+    _assert_done_criteria(res, "noisy")
+    fit = res.to_dict()["fit"]
+    # over 5× the good-fit level (0.1 %), which alone would flag it
+    assert fit["residual_ratio"] > 5 * IdentificationOptions().good_fit_ratio
+    assert fit["approximate"] is False and fit["noise_limited"] is True
+    white = res.stage("joint").detail["residual_whiteness"]
+    assert white["spectral_flatness"] > 0.95 and white["window_rms_p90_over_median"] < 1.3
+    assert any("white" in n and "not flagged approximate" in n for n in res.notes)
+    assert all(s.name != "predictor" for s in res.stages)
+    row = _model_fit_row(res.to_dict())
+    assert "white torque noise" in row and "APPROXIMATE" not in row
+    # ... and the tuning trusts its ε although the residual is over its own gate (0.5 %)
+    assert fit["residual_ratio"] > TuningOptions().backlash_max_residual_ratio
+    s = design(res, TuningOptions())
+    assert s.backlash.enabled and s.backlash.amount_rad == pytest.approx(2 * res.epsilon_rad)
+    assert any("white torque noise" in n for n in s.notes)
+    # the impact-rich plant's residual is neither: it stays flagged
+    bursts = _identified("impact_rich")
+    w = bursts.stage("joint").detail["residual_whiteness"]
+    assert w["spectral_flatness"] < 0.95 and w["window_rms_p90_over_median"] > 1.3
+    assert bursts.to_dict()["fit"]["noise_limited"] is False
+
+
 def test_a_result_that_cannot_explain_the_windows_it_dropped_is_reported_as_approximate() -> None:
     # the plain fit's rules (the predictor refit, on by default, would refine this plant)
     d = _identified("lightly_damped_100hz_zeta01", predictor=False).to_dict()
@@ -299,11 +338,7 @@ def test_a_result_that_cannot_explain_the_windows_it_dropped_is_reported_as_appr
     assert _identified("ideal").to_dict()["fit"]["residual_ratio_all_samples"] == \
         _identified("ideal").to_dict()["fit"]["residual_ratio"]
     # the CLI's summary says both when samples were dropped
-    from commission.cli import _rows
-
-    rec = {"samples": 80000, "sample_rate_hz": FS, "duration_s": 10.0, "signals": ["torque_ref"],
-           "peak_torque_nm": 0.3, "peak_motor_velocity_rad_s": 17.0, "status": "complete"}
-    row = dict(_rows({"files": [], "source": "sim", "recording": rec, "identification": d}))["model fit"]
+    row = _model_fit_row(d)
     assert "dropped" in row and "over all of it" in row and "APPROXIMATE" in row
 
 

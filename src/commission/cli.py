@@ -502,6 +502,7 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
                             + (f" ({100 * fit['residual_ratio_all_samples']:.2g} % over all of it)"
                                if "residual_ratio_all_samples" in fit else "")
                             if fit["dropped_fraction"] else "")
+                         + (" (white torque noise)" if fit.get("noise_limited") else "")
                          + ("  APPROXIMATE: the model does not reproduce this axis (notes: -v)"
                             if fit["approximate"] else "")))
     ctl = result.get("controller")

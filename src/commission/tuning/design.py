@@ -116,7 +116,8 @@ class TuningOptions(BaseModel):
     backlash_threshold_deg: float = Field(0.01, ge=0, description="ε at or below this is 'no backlash' [deg]")
     backlash_max_residual_ratio: float = Field(0.005, gt=0, description="no backlash compensation when the "
                                                "identification leaves more than this fraction of the torque "
-                                               "unexplained (its ε is then not trusted) [-]")
+                                               "unexplained (its ε is then not trusted), unless it found that residual to "
+                                               "be white torque noise [-]")
     backlash_time_constant_s: float | None = Field(None, gt=0, le=1.0, description="smoothing of the "
                                                    "compensation [s]; None = 1/K_p")
     backlash_approach_filter: bool = Field(True, description="with backlash compensation, smooth the position "
@@ -635,7 +636,14 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
         notes.append(f"position gain limited by the anti-resonance ({md.f_antiresonance_hz:.1f} Hz)")
     amount = 2.0 * mdl.epsilon_rad if (mdl.backlash and opt.backlash_compensation) else 0.0
     ratio_unexplained = _residual_ratio(model)
-    if amount > 0.0 and ratio_unexplained is not None and ratio_unexplained > opt.backlash_max_residual_ratio:
+    # a residual the identification found to be white, stationary noise is no sign of a wrong ε
+    noise_limited = bool(_joint_detail(model).get("noise_limited", False))
+    if (amount > 0.0 and ratio_unexplained is not None and ratio_unexplained > opt.backlash_max_residual_ratio
+            and noise_limited):
+        notes.append(f"backlash compensation kept although the identified model leaves {100 * ratio_unexplained:.2f} % "
+                     f"of the torque unexplained (> {100 * opt.backlash_max_residual_ratio:g} %): the identification "
+                     "found that residual to be the record's white torque noise")
+    elif amount > 0.0 and ratio_unexplained is not None and ratio_unexplained > opt.backlash_max_residual_ratio:
         amount = 0.0
         notes.append(f"backlash compensation off: the identified model leaves {100 * ratio_unexplained:.2f} % of the "
                      f"torque unexplained (> {100 * opt.backlash_max_residual_ratio:g} %), so its ε is not trusted; "
