@@ -49,6 +49,7 @@ class Case:
     coulomb_nm: float = 0.0
     lag_hz: float | None = None
     B_l: float | None = None
+    noise_nm: float = 1e-4  # torque noise (white, on the motor torque)
 
     def params(self) -> TwoMassParameters:
         if self.name.startswith("reference"):
@@ -83,13 +84,17 @@ FULL = [
     Case("reference +lag1k", 0.4, 65.4, 0.167, 0.40, lag_hz=1000.0),
     Case("reference +both", 0.4, 65.4, 0.167, 0.40, coulomb_nm=0.01, lag_hz=1000.0),
     Case("soft heavy +both", 4.0, 25, 0.17, 0.60, coulomb_nm=0.01, lag_hz=1000.0, B_l=1.5e-2),
+    # 30× the torque noise: 0.5 % of τ_ref left at the true parameters (fit.noise_limited)
+    Case("reference noise 3e-3", 0.4, 65.4, 0.167, 0.40, noise_nm=3e-3),
 ]
 QUICK_NAMES = {"reference", "reference eps=0", "stiff light 150Hz", "soft heavy 25Hz",
                "reference +coulomb", "reference +lag1k", "ref zeta=0.07 e=0.25"}
 
 
-def record(case: Case, seed: int = 7, noise_nm: float = 1e-4) -> Recording:
-    """The case's plant under the default chirp, motor-side signals (torque noise [N·m], its seed)."""
+def record(case: Case, seed: int = 7, noise_nm: float | None = None) -> Recording:
+    """The case's plant under the default chirp, motor-side signals (torque noise [N·m], default
+    the case's, and its seed)."""
+    noise_nm = case.noise_nm if noise_nm is None else noise_nm
     p = case.params()
     tau = chirp(ExcitationConfig()).samples
     pp = PlantParameters(**p.as_dict(), epsilon_deg=case.eps_deg, torque_noise_nm=noise_nm, seed=seed,
@@ -139,6 +144,7 @@ def run(case: Case, method: Method, compare: bool) -> dict:
         row["ratio_all"] = j.get("residual_ratio_all_samples", math.nan)
         row["approximate"] = bool(j.get("approximate", False))
         row["refined"] = bool(j.get("refined_by_predictor", False))
+        row["noise_limited"] = bool(j.get("noise_limited", False))
         row["terms"] = "".join(c for t, c in (("coulomb_motor", "m"), ("coulomb_load", "l"),
                                               ("current_loop", "c")) if t in j.get("terms", [])) or "-"
         if compare:
@@ -190,7 +196,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"dropped {100 * r.get('dropped', 0):.1f} %, residual {100 * r.get('ratio', math.nan):.3f} % "
                   f"of τ_ref, {100 * r.get('ratio_all', math.nan):.3f} % on all samples"
                   f"{', approximate' if r.get('approximate') else ''}"
-                  f"{', refined by the predictor' if r.get('refined') else ''})")
+                  f"{', refined by the predictor' if r.get('refined') else ''}"
+                  f"{', white noise (noise-limited)' if r.get('noise_limited') else ''})")
     hyb = [r for r in rows if r["method"] == "hybrid" and "stages" in r]
     if hyb:
         walls = sorted(r["wall"] for r in hyb)

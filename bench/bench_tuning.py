@@ -60,7 +60,7 @@ QUICK = {"reference", "reference eps=0", "stiff light 150Hz", "soft heavy 25Hz",
 
 def _identify(case: Case):
     tau = chirp(ExcitationConfig()).samples
-    pp = truth(case).model_copy(update={"torque_noise_nm": 1e-4, "seed": 11})
+    pp = truth(case).model_copy(update={"torque_noise_nm": case.noise_nm, "seed": 11})
     r = Plant(pp, FS).run_torque(tau)
     return identify(Recording.uniform(FS, r.torque_ref, r.motor_velocity, motor_position=r.motor_position))
 
