@@ -834,8 +834,8 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
                       else "approximate result: ") + why)
     if refined is not None:
         notes.append(f"result refined with a load-state predictor: {trigger}; its load re-simulated from "
-                     f"the motor position drifts from the real one across the impacts; with the simulated load corrected "
-                     f"from the motor equation after every sample the fit leaves "
+                     "the motor position drifts from the real one across the impacts; with the simulated "
+                     f"load corrected from the motor equation after every sample the fit leaves "
                      f"{100 * pdetail['residual_ratio']:.3f} % of the torque (ε {pdetail['epsilon_deg']:.4f}°, "
                      f"was {pdetail['plain_epsilon_deg']:.4f}°)"
                      + (f"; without the terms it had kept ({', '.join(pdetail['terms_dropped'])})"
@@ -926,11 +926,11 @@ _APPROXIMATE_ALL_SAMPLES = 0.025
 #: (:func:`_predictor_refit`) when its residual over every sample exceeds this × good_fit_ratio —
 #: the level the first rule sets for the kept samples — and 2× the residual on the kept ones, so
 #: that what is left lies in the dropped windows, not in the noise of a noisy record. Measured
-#: (ζ 0.07, ε 0.25°, seeds 1–30, bench/bench_seeds.py): the seeds whose second pass could not get back the windows it dropped
-#: left 1.0–1.2 % over all samples and ε 0.015–0.024° too low (seed 30 beyond the issue's
-#: ±0.02°); refined, all four within 0.0003°, 30 of 30 within tolerance instead of 29, at +1 s
-#: each (median 2.10 → 2.12 s, mean 2.57 → 2.80 s); ζ 0.07 with ε 0.15°: 0.0154° → 0.0002°.
-#: Unchanged: the other 39 plants of a 40-plant sweep and bench_identify's (seed 7), where results
+#: (ζ 0.07, ε 0.25°, seeds 1–30, bench/bench_seeds.py): the seeds whose second pass could not
+#: get back the windows it dropped left 1.0–1.2 % over all samples and ε 0.015–0.024° too low
+#: (seed 30 beyond the issue's ±0.02°); refined, all four within 0.0003°, 30 of 30 within
+#: tolerance instead of 29, at +1 s each (median 2.10 → 2.12 s, mean 2.57 → 2.80 s); ζ 0.07
+#: with ε 0.15°: 0.0154° → 0.0002°. Unchanged: the other 39 plants of a 40-plant sweep and bench_identify's (seed 7), where results
 #: without terms leave 0.03 % and those with friction or a lag (not refined: the predictor
 #: models neither) up to 0.6 %. Not taken (+1.5 s): a stiff light 150 Hz, ζ 0.07 plant (1.1 %).
 _REFINE_ALL_SAMPLES_FACTOR = 5.0

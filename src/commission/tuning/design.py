@@ -116,8 +116,8 @@ class TuningOptions(BaseModel):
     backlash_threshold_deg: float = Field(0.01, ge=0, description="ε at or below this is 'no backlash' [deg]")
     backlash_max_residual_ratio: float = Field(0.005, gt=0, description="no backlash compensation when the "
                                                "identification leaves more than this fraction of the torque "
-                                               "unexplained (its ε is then not trusted), unless it found that residual to "
-                                               "be white torque noise [-]")
+                                               "unexplained (its ε is then not trusted), unless it found that "
+                                               "residual to be white torque noise [-]")
     backlash_time_constant_s: float | None = Field(None, gt=0, le=1.0, description="smoothing of the "
                                                    "compensation [s]; None = 1/K_p")
     backlash_approach_filter: bool = Field(True, description="with backlash compensation, smooth the position "
