@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 
 from commission.config import ExcitationConfig
@@ -77,6 +78,9 @@ CASES: dict[str, tuple[TwoMassParameters, dict]] = {
     # 30× the torque noise of the other cases: the residual at the true parameters is 0.5 % of
     # τ_ref, over the approximate rule's level, and it is white noise
     "noisy": (REFERENCE_PLANT, dict(epsilon_deg=0.40, torque_noise_nm=3e-3, seed=5)),
+    # a 17-bit motor encoder (the 24-bit default elsewhere): at the 400 Hz low-pass its
+    # quantization leaves 3 % of τ_ref, and the ζ 0.07 plant's fit ended with ε +0.10°, J, K 8 % off
+    "coarse_encoder": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25, seed=5, encoder_bits_motor=17)),
     # small friction on the load only: below the search's Coulomb limit, so screened at first
     "small_load_coulomb": (REFERENCE_PLANT, dict(epsilon_deg=0.40, coulomb_load_nm=0.002)),
     "impact_rich": (TwoMassParameters(J_m=4.78e-4, J_l=0.956e-4, B_m=0.84e-2, B_l=0.3e-2, K=125.8,
@@ -321,6 +325,32 @@ def test_a_residual_that_is_white_noise_does_not_make_the_result_approximate() -
     w = bursts.stage("joint").detail["residual_whiteness"]
     assert w["spectral_flatness"] < 0.95 and w["window_rms_p90_over_median"] > 1.3
     assert bursts.to_dict()["fit"]["noise_limited"] is False
+
+
+def test_the_quantization_floor_matches_quantization_noise_through_the_residual() -> None:
+    from commission.ident.hybrid import _quantization_floor_nm
+    from commission.ident.residual import prepare_residual
+
+    step = 2 * math.pi / 2 ** 17
+    noise = np.random.default_rng(1).uniform(-step / 2, step / 2, 80000)
+    for fc in (400.0, 150.0):
+        pr = prepare_residual(np.zeros(noise.size), FS, motor_position=noise, cutoff_hz=fc)
+        measured = REFERENCE_PLANT.J_m * float(np.sqrt(np.mean(pr.acceleration_f[4:-4] ** 2)))
+        assert _quantization_floor_nm(step, REFERENCE_PLANT.J_m, FS, fc) == pytest.approx(measured, rel=0.04)
+
+
+def test_a_coarse_motor_encoder_lowers_the_residual_low_pass() -> None:
+    res = _identified("coarse_encoder")
+    _assert_done_criteria(res, "coarse_encoder")
+    cut = res.stage("start").detail["residual"]
+    assert cut["position_step_rad"] == pytest.approx(2 * math.pi / 2 ** 17)
+    assert cut["quantization_floor_ratio_configured"] > 0.02  # 3 % at 400 Hz
+    assert cut["cutoff_hz"] < 200.0 and cut["quantization_floor_ratio"] < 0.003
+    assert abs(res.epsilon_deg - 0.25) < 0.005 and res.to_dict()["fit"]["approximate"] is False
+    assert any("encoder's step" in n for n in res.notes)
+    # a 24-bit encoder leaves the configured low-pass alone
+    ideal = _identified("ideal").stage("start").detail["residual"]
+    assert ideal["cutoff_hz"] == IdentificationOptions().residual_cutoff_hz and ideal["quantization_floor_ratio"] < 1e-3
 
 
 def test_a_result_that_cannot_explain_the_windows_it_dropped_is_reported_as_approximate() -> None:
