@@ -49,7 +49,7 @@ def truth(case: Case) -> PlantParameters:
     """The simulator's plant of a case (backlash, Coulomb friction and lag included)."""
     return PlantParameters(**case.params().as_dict(), epsilon_deg=case.eps_deg,
                            coulomb_motor_nm=case.coulomb_nm, coulomb_load_nm=case.coulomb_nm,
-                           current_loop_bandwidth_hz=case.lag_hz)
+                           current_loop_bandwidth_hz=case.lag_hz, encoder_bits_motor=case.encoder_bits)
 
 
 FULL = [c for c in _IDENT_FULL if not c.name.startswith("ref zeta")] + [
