@@ -1156,7 +1156,9 @@ def _predictor_refit(problem: Any, jf: Any, eps_cells: Any, eps_max: float, opt:
     From them, an ε scan on the predictor residual (best cells 0.14° for 0.20° and 0.23° for
     0.30°) and a least-squares fit of all seven parameters reach ε within 0.0001° and J, K within
     0.03 % at the noise floor (100 Hz ζ 0.05; J_l/J_m = 2, 60 Hz, ζ 0.07). On the stiff light 200 Hz
-    plant it ends at 1.5 % of τ_ref: not taken. The predictor models no friction
+    plant it ends at 1.5 % of τ_ref at the default gain: not taken; the caller then refits at
+    ``gain`` = ``_PREDICTOR_HIGH_GAIN`` with ``accept_ratio`` and ``second_start`` (a second start
+    from the widest near-best ε cell when the first is not taken). The predictor models no friction
     or current-loop terms: terms the approximate fit kept (spuriously, e.g. a lag on the 60 Hz
     plant) are dropped when the refit reaches the good-fit level without them, and a plant that
     needs them does not reach it. Skipped with a load encoder (no load-position block).
