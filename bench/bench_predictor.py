@@ -32,7 +32,7 @@ from commission.ident.residual import predictor_residual, prepare_residual  # no
 
 FS = 8000.0
 #: (α, β) gains of the predictor; (0, 0) is the plain residual.
-GAINS = ((0.0, 0.0), (0.05, 0.0), (0.1, 0.0), (0.1, 0.01), (0.2, 0.02))
+GAINS = ((0.0, 0.0), (0.05, 0.0), (0.1, 0.0), (0.1, 0.01), (0.2, 0.02), (0.5, 0.0))
 CASES = [c for c in FULL if c.name in ("reference", "ref zeta=0.07 e=0.25", "stiff light 200Hz", "stiff 300Hz")] + [
     Case("mid 100Hz zeta0.05", 1.0, 100, 0.05, 0.20),
 ]
