@@ -953,8 +953,8 @@ _APPROXIMATE_ALL_SAMPLES = 0.025
 #: get back the windows it dropped left 1.0–1.2 % over all samples and ε 0.015–0.024° too low
 #: (seed 30 beyond the issue's ±0.02°); refined, all four within 0.0003°, 30 of 30 within
 #: tolerance instead of 29, at +1 s each (median 2.10 → 2.12 s, mean 2.57 → 2.80 s); ζ 0.07
-#: with ε 0.15°: 0.0154° → 0.0002°. Unchanged: the other 39 plants of a 40-plant sweep and bench_identify's (seed 7), where results
-#: without terms leave 0.03 % and those with friction or a lag (not refined: the predictor
+#: with ε 0.15°: 0.0154° → 0.0002°. Unchanged: the other 39 plants of a 40-plant sweep and
+#: bench_identify's (seed 7), where results without terms leave 0.03 % and those with friction or a lag (not refined: the predictor
 #: models neither) up to 0.6 %. Not taken (+1.5 s): a stiff light 150 Hz, ζ 0.07 plant (1.1 %).
 _REFINE_ALL_SAMPLES_FACTOR = 5.0
 #: The first approximate rule (residual over 5× the good-fit level) does not flag a result whose
@@ -1354,7 +1354,7 @@ def _quantization_floor_nm(step_rad: float, J_m: float, sample_rate_hz: float, c
     difference (|H|² = 16·sin⁴(ω/2)) times fs², and the residual's zero-phase low-pass (the 4th-order
     Butterworth of :func:`residual.prepare_residual`, applied twice: |H|⁴).
 
-    Measured: within 3 % of such noise through ``prepare_residual`` (tests); 3.0 % of τ_ref for a
+    Measured: within 3 % of such noise through ``prepare_residual`` (tests); 3.1 % of τ_ref for a
     17-bit encoder on the reference plant at 400 Hz, where the true parameters leave 3.0 %.
     """
     from scipy.signal import butter, sosfreqz
