@@ -954,8 +954,8 @@ _APPROXIMATE_ALL_SAMPLES = 0.025
 #: (seed 30 beyond the issue's ±0.02°); refined, all four within 0.0003°, 30 of 30 within
 #: tolerance instead of 29, at +1 s each (median 2.10 → 2.12 s, mean 2.57 → 2.80 s); ζ 0.07
 #: with ε 0.15°: 0.0154° → 0.0002°. Unchanged: the other 39 plants of a 40-plant sweep and
-#: bench_identify's (seed 7), where results without terms leave 0.03 % and those with friction or a lag (not refined: the predictor
-#: models neither) up to 0.6 %. Not taken (+1.5 s): a stiff light 150 Hz, ζ 0.07 plant (1.1 %).
+#: bench_identify's (seed 7), where results without terms leave 0.03 % and those with friction
+#: or a lag (not refined: the predictor models neither) up to 0.6 %. Not taken (+1.5 s): a stiff light 150 Hz, ζ 0.07 plant (1.1 %).
 _REFINE_ALL_SAMPLES_FACTOR = 5.0
 #: The first approximate rule (residual over 5× the good-fit level) does not flag a result whose
 #: residual on every sample is white (spectral flatness ≥ this) and stationary (window RMS
