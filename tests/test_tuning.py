@@ -112,6 +112,22 @@ def test_reference_plant_meets_the_margins_on_the_true_plant() -> None:
     assert m.phase_margin_deg < 45.0 + TuningOptions().design_guard_deg or m.gain_margin_db < 9.0
 
 
+def test_bandwidth_is_not_read_at_a_narrow_notch_inside_the_loop() -> None:
+    from commission.tuning.design import _bandwidth_hz
+
+    # T = first order with its −3 dB at 300 Hz, times a narrow notch at 70 Hz (an anti-resonance)
+    w = 2 * math.pi * np.geomspace(0.05, 3999.0, 6000)
+    s = 1j * w
+    wb, wn = 2 * math.pi * 300.0, 2 * math.pi * 70.0
+    T = (s * s + 2 * 0.01 * wn * s + wn * wn) / (s * s + 2 * 0.1 * wn * s + wn * wn) / (1 + s / wb)
+    assert np.abs(T[np.argmin(np.abs(w - wn))]) < 1 / math.sqrt(2)  # the notch dips below −3 dB
+    assert _bandwidth_hz(T / (1 - T), w) == pytest.approx(300.0, rel=0.02)
+    # ... and on the identified model of such a plant: the notch (71 Hz) was read as the bandwidth
+    p = TwoMassParameters(J_m=4.78e-4, J_l=4.78e-4, B_m=0.84e-2, B_l=0.53e-2 * math.sqrt(2.5),
+                          K=(2 * math.pi * 100) ** 2 * 4.78e-4 / 2, D=0.05 * 2 * math.pi * 100 * 4.78e-4)
+    assert design(p, TuningOptions(), epsilon_rad=math.radians(0.2)).velocity_bandwidth_hz > 500.0
+
+
 def test_backlash_compensation_reduces_the_load_error_after_reversals() -> None:
     s, v = _reference()
     assert s.backlash.enabled
