@@ -12,8 +12,9 @@ default, and for comparison the full-resolution grid and the Bayesian search).
     python bench/bench_identify.py --no-paper # hybrid only
 
 Plants with Coulomb friction (0.01 and 0.03 N·m per side), a 1 kHz current-loop lag, both,
-lightly damped ones, 30× the torque noise and a 17-bit motor encoder are in the spread; the hybrid method's kept terms (model selection,
-BIC) are printed per plant ("terms": m = motor Coulomb, l = load Coulomb, c = current loop).
+lightly damped ones, 30× the torque noise and a 17-bit motor encoder are in the spread; the
+hybrid method's kept terms (model selection, BIC) are printed per plant ("terms": m = motor
+Coulomb, l = load Coulomb, c = current loop).
 """
 
 from __future__ import annotations
