@@ -575,10 +575,14 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
 
     st.start("start", 0.25)
     use_load = bool(opt.use_load_encoder and rec.load_position is not None)
-    problem = prepare_residual(
-        rec.torque_ref, fs, motor_position=rec.motor_position, motor_velocity=rec.motor_velocity,
-        cutoff_hz=opt.residual_cutoff_hz, load_position=rec.load_position if use_load else None,
-        velocity_scale_rad_s=opt.coulomb_velocity_scale_rad_s, interpolation=opt.motor_interpolation)
+
+    def prepared(cutoff_hz: float) -> Any:
+        return prepare_residual(
+            rec.torque_ref, fs, motor_position=rec.motor_position, motor_velocity=rec.motor_velocity,
+            cutoff_hz=cutoff_hz, load_position=rec.load_position if use_load else None,
+            velocity_scale_rad_s=opt.coulomb_velocity_scale_rad_s, interpolation=opt.motor_interpolation)
+
+    problem = prepared(opt.residual_cutoff_hz)
     candidates = ModelTerms(**{name: True for name in opt.model_terms})
     start, how, start_info = _robust_start(rec, opt, frd, fit, problem, candidates, notes)
     if how != "exact":
@@ -592,10 +596,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
     w_load = float(start.K) if use_load else 0.0
     cutoff = _residual_cutoff(rec, opt, start, problem, notes)
     if cutoff["cutoff_hz"] < opt.residual_cutoff_hz:
-        problem = prepare_residual(
-            rec.torque_ref, fs, motor_position=rec.motor_position, motor_velocity=rec.motor_velocity,
-            cutoff_hz=cutoff["cutoff_hz"], load_position=rec.load_position if use_load else None,
-            velocity_scale_rad_s=opt.coulomb_velocity_scale_rad_s, interpolation=opt.motor_interpolation)
+        problem = prepared(cutoff["cutoff_hz"])
     st.done("start", parameters=start.as_dict(), how=how, load_encoder=use_load, residual=cutoff, **start_info)
 
     st.start("search", 0.3)
@@ -771,8 +772,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages) ->
     # noise, not model error (see the constants)
     noise_limited = False
     if ratio > _APPROXIMATE_FACTOR * opt.good_fit_ratio:
-        n_motor = problem.acceleration_f.shape[0]
-        white = _residual_whiteness(_all_samples_residual(problem, jf, w_load)[_EDGE_SAMPLES:n_motor - _EDGE_SAMPLES],
+        white = _residual_whiteness(_inner_motor_block(problem, _all_samples_residual(problem, jf, w_load)),
                                     fs / problem.decimation)
         st.items[-1].detail["residual_whiteness"] = white
         noise_limited = (white["spectral_flatness"] >= _WHITE_FLATNESS
@@ -1309,10 +1309,14 @@ def _ratio_all_samples(problem: Any, jf: Any, w_load: float, ref: float) -> floa
     if jf.dropped_fraction <= 0:
         return float(jf.cost / ref)
     v = _all_samples_residual(problem, jf, w_load)
-    n = problem.acceleration_f.shape[0]
-    motor = v[:n][_EDGE_SAMPLES:n - _EDGE_SAMPLES] if n > 4 * _EDGE_SAMPLES else v[:n]
-    v = np.concatenate((motor, v[n:]))
+    v = np.concatenate((_inner_motor_block(problem, v), v[problem.acceleration_f.shape[0]:]))
     return float(np.sqrt(np.mean(v * v))) / ref
+
+
+def _inner_motor_block(problem: Any, v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The motor block of a residual vector without the low-pass's edge transients (``_EDGE_SAMPLES``)."""
+    n = problem.acceleration_f.shape[0]
+    return v[:n][_EDGE_SAMPLES:n - _EDGE_SAMPLES] if n > 4 * _EDGE_SAMPLES else v[:n]
 
 
 def _residual_cutoff(rec: Recording, opt: IdentificationOptions, start: TwoMassParameters, problem: Any,
@@ -1321,13 +1325,11 @@ def _residual_cutoff(rec: Recording, opt: IdentificationOptions, start: TwoMassP
     quantization floor (:func:`_quantization_floor_nm`) at the start's J_m, as the start stage's detail."""
     from scipy.optimize import brentq
 
+    from .residual import motor_position_samples
+
     ref = max(float(np.sqrt(np.mean(problem.torque_f ** 2))), 1e-300)
     fs, fc = rec.sample_rate_hz, opt.residual_cutoff_hz
-    if rec.motor_position is not None:
-        x = np.asarray(rec.motor_position, dtype=float)
-    else:  # as prepare_residual rebuilds it
-        x = np.concatenate(([0.0], np.cumsum(np.asarray(rec.motor_velocity, dtype=float)[1:]) / fs))
-    steps = np.abs(np.diff(x))
+    steps = np.abs(np.diff(motor_position_samples(rec.motor_position, rec.motor_velocity, fs)))
     steps = steps[steps > 0]
     count = float(np.min(steps)) if steps.size else 0.0
 

@@ -685,6 +685,18 @@ class Residual:
     simulation: LoadSimulation
 
 
+def motor_position_samples(motor_position: NDArray[np.float64] | None, motor_velocity: NDArray[np.float64] | None,
+                           sample_rate_hz: float) -> NDArray[np.float64]:
+    """The motor position [rad], shape (N,): as latched, or rebuilt exactly from the
+    backward-difference velocity (x[k] = x[k−1] + Ts·v[k], x[0] = 0) when there is none."""
+    if motor_position is not None:
+        return np.asarray(motor_position, dtype=np.float64)
+    if motor_velocity is not None:
+        v = np.asarray(motor_velocity, dtype=np.float64)
+        return np.concatenate(([0.0], np.cumsum(v[1:]) / float(sample_rate_hz)))
+    raise IdentificationError("the torque residual needs the motor position or velocity")
+
+
 def prepare_residual(
     torque_ref: NDArray[np.float64],
     sample_rate_hz: float,
@@ -717,13 +729,7 @@ def prepare_residual(
     tau = np.asarray(torque_ref, dtype=np.float64)
     n = tau.shape[0]
     fs = float(sample_rate_hz)
-    if motor_position is not None:
-        x = np.asarray(motor_position, dtype=np.float64)
-    elif motor_velocity is not None:
-        v = np.asarray(motor_velocity, dtype=np.float64)
-        x = np.concatenate(([0.0], np.cumsum(v[1:]) / fs))
-    else:
-        raise IdentificationError("the torque residual needs the motor position or velocity")
+    x = motor_position_samples(motor_position, motor_velocity, fs)
     if x.shape[0] != n or n < 16:
         raise IdentificationError(f"the torque residual needs ≥ 16 aligned samples, got {n}")
     if not 0.0 < cutoff_hz < 0.5 * fs:
