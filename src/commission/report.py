@@ -71,8 +71,10 @@ _COLORS = {
     "accent": "#6a3d9a",
     "reference": "#555555",
 }
-#: Points of the ε profile computed for the report (one dead-zone simulation each).
-_PROFILE_POINTS = 41
+#: Points of the ε profile computed for the report (one dead-zone simulation each): over the
+#: whole range, and around ε̂.
+_PROFILE_POINTS = 21
+_PROFILE_NEAR = 8
 
 
 # ---------------------------------------------------------------------------------------------
@@ -180,7 +182,10 @@ def _curves(rec: Recording, ident: Any, config: Mapping[str, Any] | None,
     frd_model = estimate_frd(u, sim0.motor_velocity, fs, band_hz=band, resolution_hz=res)
 
     hi = max(2.0 * eb[1], 1.5 * math.degrees(eps), 0.05)
-    grid = np.unique(np.concatenate([np.linspace(0.0, hi, _PROFILE_POINTS), [math.degrees(eps)]]))
+    # uniform over the range, denser around ε̂ where the loss has its narrow minimum
+    e_hat = math.degrees(eps)
+    near = e_hat + 0.1 * hi * np.linspace(-1.0, 1.0, _PROFILE_NEAR)
+    grid = np.unique(np.concatenate([np.linspace(0.0, hi, _PROFILE_POINTS), near[near >= 0.0], [e_hat]]))
     rms = np.empty(grid.size)
     mx = np.empty(grid.size)
     for i, e in enumerate(grid):

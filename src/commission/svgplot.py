@@ -403,16 +403,14 @@ class Figure:
 
 
 def _path(X: NDArray[np.float64], Y: NDArray[np.float64]) -> str:
-    """A polyline with breaks at non-finite points."""
+    """A polyline with breaks at non-finite points (formatted in one call per run of points)."""
     ok = np.isfinite(X) & np.isfinite(Y)
-    parts: list[str] = []
-    pen = False
-    for a, b, good in zip(X.tolist(), Y.tolist(), ok.tolist()):
-        if not good:
-            pen = False
-            continue
-        parts.append(f"{'L' if pen else 'M'}{a:.1f} {b:.1f}")
-        pen = True
+    edges = np.flatnonzero(np.diff(np.r_[0, ok.astype(np.int8), 0]))
+    parts = []
+    for a, b in zip(edges[0::2], edges[1::2]):
+        xy = np.empty(2 * (b - a))
+        xy[0::2], xy[1::2] = X[a:b], Y[a:b]
+        parts.append(("M%.1f %.1f" + "L%.1f %.1f" * (b - a - 1)) % tuple(xy.tolist()))
     return "".join(parts)
 
 

@@ -44,6 +44,7 @@ from .loop import (
     _eval,
     _freq_grid,
     _grid_margins,
+    _grid_meets,
     _plant_z,
     _polymul,
     loop_margins,
@@ -152,15 +153,21 @@ def _search(loop: _Loop, p: TwoMassParameters, notches: tuple[Notch, ...], filte
     pm_d, gm_d = pm_req + options.design_guard_deg, gm_req + options.design_guard_db
     J = p.J_m + p.J_l
 
-    def feasible(kv: float) -> tuple[bool, float]:
+    def feasible(kv: float) -> bool:
         kp, Ti, tf_s = _gains(kv, J, p.J_m, filter_ratio, options)
-        m, mg, bw = _evaluate(loop, kp, Ti, tf_s, notches)
-        ok = m.meets(pm_d, gm_d) and (mg is None or mg.meets(pm_req, gm_req))
-        return ok, bw
+        cn, cd = _controller_z(kp, Ti, tf_s, notches, loop.Ts)
+        C = _eval(cn, cd, loop.w, loop.Ts)
+        pn, pd, P = loop.contact
+        if not _grid_meets(C * P, loop.w, _polymul(cn, pn), _polymul(cd, pd), pm_d, gm_d):
+            return False
+        if loop.gap is None:
+            return True
+        gn, gd, G = loop.gap
+        return _grid_meets(C * G, loop.w, _polymul(cn, gn), _polymul(cd, gd), pm_req, gm_req)
 
     grid = np.geomspace(0.5, options.sample_rate_hz / 8.0, 48)
     # the highest feasible grid point: scanned from the top, the first one found
-    i = next((j for j in range(grid.size - 1, -1, -1) if feasible(float(grid[j]))[0]), None)
+    i = next((j for j in range(grid.size - 1, -1, -1) if feasible(float(grid[j]))), None)
     if i is None:
         return None
     last_ok = float(grid[i])
@@ -168,12 +175,13 @@ def _search(loop: _Loop, p: TwoMassParameters, notches: tuple[Notch, ...], filte
         lo, hi = last_ok, float(grid[i + 1])
         for _ in range(10):
             mid = math.sqrt(lo * hi)
-            if feasible(mid)[0]:
+            if feasible(mid):
                 lo = mid
             else:
                 hi = mid
         last_ok = lo
-    return last_ok, feasible(last_ok)[1]
+    kp, Ti, tf_s = _gains(last_ok, J, p.J_m, filter_ratio, options)
+    return last_ok, _evaluate(loop, kp, Ti, tf_s, notches)[2]
 
 
 def _peaks(loop: _Loop, p: TwoMassParameters, notches: tuple[Notch, ...], best: tuple[float, float, float],

@@ -11,6 +11,7 @@ low-pass and the notches are the very difference equations the drive (and
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -32,7 +33,19 @@ Poly = NDArray[np.float64]
 
 def _plant_z(num_s: Poly, den_s: Poly, Ts: float, current_loop_hz: float | None,
              delay_samples: int) -> tuple[Poly, Poly]:
-    """Torque samples → velocity samples: z^{-d}·(1 − z⁻¹)/Ts·ZOH{lag(s)·P(s)/s}."""
+    """Torque samples → velocity samples: z^{-d}·(1 − z⁻¹)/Ts·ZOH{lag(s)·P(s)/s}.
+
+    The design, the verification and the report discretise the same few plants: each is
+    computed once (scipy's matrix exponential costs milliseconds when BLAS threads wake up).
+    """
+    num, den = _plant_z_cached(tuple(np.asarray(num_s, dtype=float).tolist()),
+                               tuple(np.asarray(den_s, dtype=float).tolist()), Ts, current_loop_hz, delay_samples)
+    return num.copy(), den.copy()
+
+
+@functools.lru_cache(maxsize=64)
+def _plant_z_cached(num_s: tuple[float, ...], den_s: tuple[float, ...], Ts: float, current_loop_hz: float | None,
+                    delay_samples: int) -> tuple[Poly, Poly]:
     num = np.asarray(num_s, dtype=float)
     den = np.polymul(np.asarray(den_s, dtype=float), [1.0, 0.0])
     if current_loop_hz is not None:
@@ -110,8 +123,9 @@ def _eval(num: Poly, den: Poly, w: NDArray[np.float64], Ts: float) -> NDArray[np
     return np.polyval(num, z) / np.polyval(den, z)
 
 
-def _grid_margins(L: NDArray[np.complex128], w: NDArray[np.float64], num: Poly, den: Poly) -> LoopMargins:
-    """Margins from a dense frequency response (crossings interpolated linearly)."""
+def _grid_crossings(L: NDArray[np.complex128], w: NDArray[np.float64]) -> tuple[float, float, float, float]:
+    """(PM [deg], GM [dB], highest gain crossover [rad/s], phase crossover of the GM [rad/s]) of a dense
+    frequency response, crossings interpolated linearly (inf / nan where there is none)."""
     mag = np.abs(L)
     lm = np.log(mag)
     idx = np.flatnonzero(np.sign(lm[:-1]) != np.sign(lm[1:]))
@@ -136,14 +150,25 @@ def _grid_margins(L: NDArray[np.complex128], w: NDArray[np.float64], num: Poly, 
     pm = min(pms) if pms else math.inf
     if gms:
         j = int(np.argmin(gms))
-        gm, fpc = gms[j], wpc[j] / (2 * math.pi)
+        gm, wp = gms[j], wpc[j]
     else:
-        gm, fpc = math.inf, math.nan
-    stable = _stable(num, den)
-    return LoopMargins(phase_margin_deg=float(pm), gain_margin_db=float(gm),
-                       crossover_hz=float(max(wgc) / (2 * math.pi)) if wgc else math.nan,
-                       phase_crossover_hz=float(fpc), stability_margin=float(np.min(np.abs(L + 1.0))),
-                       stable=stable)
+        gm, wp = math.inf, math.nan
+    return float(pm), float(gm), float(max(wgc)) if wgc else math.nan, float(wp)
+
+
+def _grid_margins(L: NDArray[np.complex128], w: NDArray[np.float64], num: Poly, den: Poly) -> LoopMargins:
+    """Margins from a dense frequency response (crossings interpolated linearly)."""
+    pm, gm, wc, wp = _grid_crossings(L, w)
+    return LoopMargins(phase_margin_deg=pm, gain_margin_db=gm, crossover_hz=wc / (2 * math.pi),
+                       phase_crossover_hz=wp / (2 * math.pi), stability_margin=float(np.min(np.abs(L + 1.0))),
+                       stable=_stable(num, den))
+
+
+def _grid_meets(L: NDArray[np.complex128], w: NDArray[np.float64], num: Poly, den: Poly, pm_req: float,
+                gm_req: float) -> bool:
+    """``_grid_margins(...).meets(pm_req, gm_req)``, the closed-loop poles only computed when needed."""
+    pm, gm, _, _ = _grid_crossings(L, w)
+    return pm >= pm_req and gm >= gm_req and _stable(num, den)
 
 
 def _stable(num: Poly, den: Poly) -> bool:

@@ -19,6 +19,7 @@ model (:func:`choose_backlash_direction`); the verification (:mod:`.verify`) run
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -27,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..ident.twomass import TwoMassParameters
-from ..plant import Plant, PlantParameters
+from ..plant import Plant, PlantKernel, PlantParameters
 from .closedloop import MAX_NOTCHES, simulate_closed_loop
 from .loop import notch_coefficients
 from .settings import ControllerSettings, TuningOptions
@@ -41,6 +42,12 @@ _CYCLE_WINDOW_S = 0.3
 
 SCENARIOS = ("velocity_step", "position_step", "position_move", "reversal")
 
+
+
+@functools.lru_cache(maxsize=16)
+def _kernel(plant: PlantParameters, sample_rate_hz: float) -> PlantKernel:
+    """The compiled loop's view of the plant (the same plant is run a dozen times per design)."""
+    return Plant(plant, sample_rate_hz).kernel
 
 
 def plant_from_model(model: Any, epsilon_rad: float, current_loop_bandwidth_hz: float | None) -> PlantParameters:
@@ -155,7 +162,7 @@ def _limit_cycle(y: NDArray[np.float64], Ts: float, floor: float) -> tuple[float
 def run_scenario(plant: PlantParameters, settings: ControllerSettings, opt: TuningOptions, scenario: str) -> ScenarioResult:
     """One closed-loop run of ``settings`` on ``plant`` (its torque noise is not simulated)."""
     Ts = 1.0 / settings.sample_rate_hz
-    kernel = Plant(plant, 1.0 / Ts).kernel
+    kernel = _kernel(plant, 1.0 / Ts)
     q_m = 2.0 * math.pi / 2.0**plant.encoder_bits_motor
     q_l = 2.0 * math.pi / 2.0**plant.encoder_bits_load
     t_pre = 0.01
