@@ -7,8 +7,10 @@ must be checked in a browser.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import html
+import io
 import json
 import math
 import os
@@ -273,7 +275,7 @@ def test_report_with_tuning_renders_in_chromium(tuned, tmp_path: Path) -> None:
     assert "None" not in ver and "True" not in ver and "False" not in ver
     assert "velocity_step" not in ver and "proposed settings" in ver
     # the --measure-backlash result
-    assert 'id="backlash-check"' in text and "0.41" in text
+    assert 'id="backlash-check"' in text and "0.4100" in text
     result, shot = _render(page, tmp_path)
     _assert_figures(result, FIGURES + TUNING_FIGURES)
     _assert_not_blank(shot)
@@ -312,3 +314,16 @@ def test_the_plant_comes_from_the_run_not_from_the_drive_name(run) -> None:
         metadata={k: v for k, v in recording.metadata.items() if k != "simulated_plant"})
     assert simulated_plant(named, config) is None
     assert "true plant (simulator)" not in render_report(named, ident, config=config)
+
+
+def test_measure_backlash_result_is_in_the_report(tmp_path: Path) -> None:
+    """`commission --sim --measure-backlash`: the reversal check's ε is in report.html, as measured."""
+    out = tmp_path / "run"
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(["--sim", "--measure-backlash", "--no-tune", "--out", str(out), "--json"]) == 0
+    check = json.loads(buf.getvalue())["backlash_check"]
+    text = (out / REPORT_NAME).read_text(encoding="utf-8")
+    section = text[text.index('id="backlash-check"'):text.index('id="model"')]
+    assert f"{check['epsilon_deg']:.4f}" in section and check["log"] in section
+    assert text.count('id="backlash-check"') == 1

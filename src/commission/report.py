@@ -882,13 +882,13 @@ def render_report(
     if backlash_check:
         bc = backlash_check
         rows: list[tuple[Any, ...]] = [
-            ("ε from the velocity reversals", float(bc["epsilon_deg"]), "deg"),
-            ("spread over the reversals", float(bc.get("spread_deg", math.nan)), "deg"),
-            ("reversals", float(bc.get("reversals", 0)), ""),
+            ("ε from the velocity reversals", f"{float(bc['epsilon_deg']):.4f}", "deg"),
+            ("spread over the reversals", f"{float(bc.get('spread_deg', math.nan)):.4f}", "deg"),
+            ("reversals", str(bc.get("reversals", "—")), ""),
             ("log", str(bc.get("log", "—")), ""),
         ]
         if ident is not None:
-            rows.insert(1, ("ε̂ of the identification", ident.epsilon_deg, "deg"))
+            rows.insert(1, ("ε̂ of the identification", f"{ident.epsilon_deg:.4f}", "deg"))
         parts.append('<h2 id="backlash-check">Backlash check (velocity reversals, paper §4.2)</h2>'
                      + _table(rows, ["item", "value", "unit"])
                      + "<p>An independent measurement of ε with the load encoder: the gap the motor crosses at each "
