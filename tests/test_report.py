@@ -32,6 +32,7 @@ from commission.tuning import TuningOptions
 
 FIGURES = ["fig-bode", "fig-time", "fig-zoom", "fig-search", "fig-iterations"]
 TUNING_FIGURES = ["fig-openloop", "fig-step", "fig-move", "fig-reversal"]
+ZOOMABLE = ["fig-bode", "fig-time", "fig-zoom", "fig-openloop", "fig-move", "fig-reversal"]
 CHROMIUM_FLAGS = [
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -44,6 +45,28 @@ PROBE = """
 (function () {
   var errors = [];
   window.addEventListener('error', function (e) { errors.push(String(e.message)); });
+  // drag across the middle of the plot, then double-click: the x labels before, zoomed, reset
+  function labels(svg) {
+    var g = svg.querySelector('g.panel[data-labels="1"] g.xaxis');
+    return Array.prototype.map.call(g.querySelectorAll('text'), function (n) { return n.textContent; });
+  }
+  function fire(svg, type, x, y) {
+    var pt = svg.createSVGPoint(); pt.x = x; pt.y = y;
+    var c = pt.matrixTransform(svg.getScreenCTM());
+    svg.dispatchEvent(new MouseEvent(type, {clientX: c.x, clientY: c.y, bubbles: true, view: window}));
+  }
+  function zoom(svg) {
+    var g = svg.querySelector('g.panel'), L = +g.dataset.left, R = +g.dataset.right, y = +g.dataset.top + 10;
+    var out = {before: labels(svg)};
+    fire(svg, 'mousedown', L + 0.3 * (R - L), y);
+    fire(svg, 'mousemove', L + 0.6 * (R - L), y);
+    fire(svg, 'mouseup', L + 0.6 * (R - L), y);
+    out.zoomed = labels(svg);
+    out.transform = svg.querySelector('g.data').getAttribute('transform');
+    fire(svg, 'dblclick', L + 0.5 * (R - L), y);
+    out.reset = labels(svg);
+    return out;
+  }
   function probe() {
     var out = {errors: errors, figures: {}};
     document.querySelectorAll('figure.plot').forEach(function (fig) {
@@ -55,7 +78,8 @@ PROBE = """
         isSvg: !!svg && svg instanceof SVGSVGElement,
         paths: svg ? svg.querySelectorAll('path').length : 0,
         texts: svg ? svg.querySelectorAll('text').length : 0,
-        caption: (fig.querySelector('figcaption') || {textContent: ''}).textContent.length
+        caption: (fig.querySelector('figcaption') || {textContent: ''}).textContent.length,
+        zoom: svg && svg.dataset.zoom ? zoom(svg) : null
       };
     });
     var pre = document.createElement('pre');
@@ -116,7 +140,8 @@ def _render(page: Path, tmp_path: Path) -> tuple[dict, Path]:
     """Load ``page`` (plus the probe) in headless Chromium: (probe result, screenshot)."""
     chromium = _chromium()
     probed = tmp_path / "probed.html"
-    probed.write_text(page.read_text(encoding="utf-8").replace("</body>", PROBE + "</body>"), encoding="utf-8")
+    # the probe first in the body: it sees errors of the page's own script too
+    probed.write_text(page.read_text(encoding="utf-8").replace("<body>", "<body>" + PROBE, 1), encoding="utf-8")
     common = [chromium, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1200,9000"]
     dom = subprocess.run([*common, "--virtual-time-budget=10000", "--dump-dom", probed.as_uri()],
                          capture_output=True, text=True, timeout=120)
@@ -145,6 +170,11 @@ def _assert_figures(result: dict, expected: list[str]) -> None:
         assert fig["bboxWidth"] > 100 and fig["bboxHeight"] > 100, (fig_id, fig)  # draws something
         assert fig["paths"] >= 3 and fig["texts"] > 5, (fig_id, fig)  # grid, frame and data; axis labels
         assert fig["caption"] > 20, fig_id
+        if fig_id in ZOOMABLE:  # drag zooms the x axis (labels drawn again), double-click goes back
+            z = fig["zoom"]
+            assert z is not None, fig_id
+            assert z["zoomed"] != z["before"] and "scale(" in z["transform"], (fig_id, z)
+            assert z["reset"] == z["before"], (fig_id, z)
 
 
 def _assert_not_blank(shot: Path) -> None:
@@ -159,8 +189,11 @@ def _assert_not_blank(shot: Path) -> None:
 
 def _assert_self_contained(text: str) -> None:
     assert text.startswith("<!DOCTYPE html>")
-    assert "<script" not in text and "<link" not in text and "<img" not in text and "<iframe" not in text
+    # one inline script (the zoom), nothing loaded from elsewhere
+    assert text.count("<script") <= 1 and "<script>" in text or "<script" not in text
+    assert "<link" not in text and "<img" not in text and "<iframe" not in text
     assert not re.search(r"\ssrc=", text)
+    assert not any(call in text for call in ("fetch(", "XMLHttpRequest", "import(", "https://"))
     hrefs = re.findall(r'href="([^"]*)"', text)
     assert hrefs and all(h.startswith("#") for h in hrefs), [h for h in hrefs if not h.startswith("#")][:5]
     assert "@import" not in text and not re.search(r"url\((?!#)", text)

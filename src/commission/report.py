@@ -12,9 +12,9 @@ One loop model: the open-loop Bode plot and every margin on the page come from
 used, whose margins are controller.json's. The plant a verification ran on comes from the run
 (``true_plant``: the simulator's machine of a ``--sim`` run, or of a replayed log that says so).
 
-Figures are inline SVG drawn by :mod:`commission.svgplot`: no script, stylesheet link or image
-file, so the page opens offline on any laptop. Each is a ``<figure class="plot" id="fig-…">``
-holding one ``<svg>``. What the identification section shows is *recomputed* here from the
+Figures are inline SVG drawn by :mod:`commission.svgplot`, with one inline script that zooms
+the x axis of line plots: no external script, stylesheet link or image file, so the page opens
+offline on any laptop. Each is a ``<figure class="plot" id="fig-…">`` holding one ``<svg>``. What the identification section shows is *recomputed* here from the
 Recording and the Identification with the identifier's public functions (the Identification
 holds numbers, not curves):
 
@@ -51,7 +51,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .recording import Recording
-from .svgplot import Figure, Panel
+from .svgplot import ZOOM_SCRIPT, Figure, Panel
 
 if TYPE_CHECKING:
     from .plant import PlantParameters
@@ -838,6 +838,7 @@ def render_report(
         nav += ['<a href="#search">Backlash search</a>', '<a href="#iterations">Iterations</a>']
     nav.append('<a href="#metadata">Metadata</a>')
     parts.append("<nav>" + "".join(nav) + "</nav>")
+    parts.append('<p class="sub">Line plots: drag across a plot to zoom its x axis, double-click to go back.</p>')
 
     # controller settings and their verification
     if tuning is not None:
@@ -997,11 +998,12 @@ def render_report(
                      + "</pre></details>")
 
     body = "\n".join(p for p in parts if p)
+    zoom = f"<script>{ZOOM_SCRIPT}</script>" if 'data-zoom="x"' in body else ""
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
             f"<meta name=\"generator\" content=\"drive-commission {_e(_tool_version())}\">"
             f"<title>{_e(title)} — {_e(drive_name)}</title><style>{_CSS}</style></head>"
-            f"<body><main>\n{body}\n</main></body></html>\n")
+            f"<body><main>\n{body}\n</main>{zoom}</body></html>\n")
 
 
 def write_report(

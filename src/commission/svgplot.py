@@ -11,7 +11,8 @@ column (what the screen can show), so a 10 s record at 8 kHz costs ~1,600 points
     ax.vline(f_c, dash="4 3", label="crossover")
     svg_text = fig.svg("fig-openloop")      # one <svg> element, ids prefixed
 
-Coordinates are rounded to 0.1 px; text uses the page's font (``font-family: inherit``).
+Coordinates are rounded to 0.1 px; text uses the page's font (``font-family: inherit``). A page
+that includes :data:`ZOOM_SCRIPT` once can zoom the x axis of line plots (drag, double-click).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["Figure", "Panel", "envelope"]
+__all__ = ["ZOOM_SCRIPT", "Figure", "Panel", "envelope"]
 
 Scale = Literal["linear", "log"]
 
@@ -237,10 +238,11 @@ class Panel:
 class Figure:
     """Panels stacked vertically; x axes shared when ``share_x`` (labels on the last panel only)."""
 
-    def __init__(self, width: float = 960.0, *, title: str = "", share_x: bool = True) -> None:
+    def __init__(self, width: float = 960.0, *, title: str = "", share_x: bool = True, zoom: bool = True) -> None:
         self.width = width
         self.title = title
         self.share_x = share_x
+        self.zoom = zoom
         self.panels: list[Panel] = []
 
     def panel(self, height: float = 240.0, *, x_scale: Scale = "linear", y_scale: Scale = "linear",
@@ -279,9 +281,16 @@ class Figure:
             out.append(self._panel_svg(p, f"{ident}-p{k}", top, plot_h, show_x, placed))
             y0 += p.height + _LEGEND_ROW * rows
         h = y0 + 4.0
+        zoom = ' data-zoom="x"' if self._zoomable(shared) else ""
         return (f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {self.width:.0f} {h:.0f}" '
                 f'width="{self.width:.0f}" height="{h:.0f}" font-family="inherit" font-size="{_FONT:g}" '
-                f'role="img">' + "".join(out) + "</svg>")
+                f'role="img"{zoom}>' + "".join(out) + "</svg>")
+
+    def _zoomable(self, shared: bool) -> bool:
+        """Zoom on x (:data:`ZOOM_SCRIPT`) for line plots whose panels share their x axis."""
+        return (self.zoom and (shared or len(self.panels) == 1) and bool(self.panels)
+                and all(p.categories is None and not any(it.kind in ("markers", "text") for it in p.items)
+                        for p in self.panels))
 
     def _panel_svg(self, p: Panel, pid: str, top: float, plot_h: float, show_x: bool,
                    legend: list[tuple[_Item, float, int]]) -> str:
@@ -311,20 +320,28 @@ class Figure:
         py = p.y.transform(np.array(yt, dtype=float), ylo, yhi, bottom, top)
         pxm = p.x.transform(np.array(xminor, dtype=float), xlo, xhi, left, right)
         pym = p.y.transform(np.array(yminor, dtype=float), ylo, yhi, bottom, top)
-        grid = "".join(f"M{v:.1f} {top:.1f}V{bottom:.1f}" for v in px if left - 0.5 <= v <= right + 0.5)
-        grid += "".join(f"M{left:.1f} {v:.1f}H{right:.1f}" for v in py if top - 0.5 <= v <= bottom + 0.5)
-        minor = "".join(f"M{v:.1f} {top:.1f}V{bottom:.1f}" for v in pxm)
-        minor += "".join(f"M{left:.1f} {v:.1f}H{right:.1f}" for v in pym)
-        out.append(f'<path d="{grid}" stroke="#d6d6d6" stroke-width="0.8" fill="none"/>')
-        if minor:
-            out.append(f'<path d="{minor}" stroke="#ececec" stroke-width="0.6" fill="none"/>')
-        for v, lab in zip(py, (_fmt(t) for t in yt)):
-            if top - 0.5 <= v <= bottom + 0.5:
-                out.append(_text(left - 5.0, v + 4.0, lab, anchor="end"))
+        out.append(f'<g class="panel" data-x0="{xlo!r}" data-x1="{xhi!r}" data-scale="{p.x.scale}" '
+                   f'data-left="{left:g}" data-right="{right:g}" data-top="{top:.1f}" data-bottom="{bottom:.1f}" '
+                   f'data-labels="{int(show_x)}">')
+        ygrid = "".join(f"M{left:.1f} {v:.1f}H{right:.1f}" for v in py if top - 0.5 <= v <= bottom + 0.5)
+        yminor = "".join(f"M{left:.1f} {v:.1f}H{right:.1f}" for v in pym)
+        xgrid = "".join(f"M{v:.1f} {top:.1f}V{bottom:.1f}" for v in px if left - 0.5 <= v <= right + 0.5)
+        xminor = "".join(f"M{v:.1f} {top:.1f}V{bottom:.1f}" for v in pxm)
+        out.append(f'<path d="{ygrid}" stroke="#d6d6d6" stroke-width="0.8" fill="none"/>')
+        if yminor:
+            out.append(f'<path d="{yminor}" stroke="#ececec" stroke-width="0.6" fill="none"/>')
+        # the x axis's grid and labels in a group of their own: the zoom redraws them
+        out.append(f'<g class="xaxis"><path d="{xminor}" stroke="#ececec" stroke-width="0.6" fill="none"/>'
+                   f'<path d="{xgrid}" stroke="#d6d6d6" stroke-width="0.8" fill="none"/>')
         if show_x:
             for v, lab in zip(px, xlabels):
                 if left - 0.5 <= v <= right + 0.5:
                     out.append(_text(v, bottom + 15.0, lab, anchor="middle"))
+        out.append("</g>")
+        for v, lab in zip(py, (_fmt(t) for t in yt)):
+            if top - 0.5 <= v <= bottom + 0.5:
+                out.append(_text(left - 5.0, v + 4.0, lab, anchor="end"))
+        if show_x:
             if p.x_label:
                 out.append(_text((left + right) / 2, bottom + 32.0, p.x_label, anchor="middle"))
         if p.y_label:
@@ -334,21 +351,22 @@ class Figure:
         # data, clipped to the plot area
         clip = f"{pid}-clip"
         out.append(f'<clipPath id="{clip}"><rect x="{left:.1f}" y="{top:.1f}" width="{right - left:.1f}" '
-                   f'height="{plot_h:.1f}"/></clipPath><g clip-path="url(#{clip})">')
+                   f'height="{plot_h:.1f}"/></clipPath><g clip-path="url(#{clip})"><g class="data">')
         columns = int(right - left)
         for it in p.items:
             out.append(self._item_svg(it, p, xlo, xhi, ylo, yhi, left, right, top, bottom, columns))
-        out.append("</g>")
+        out.append("</g></g>")
         out.append(f'<path d="M{left:.1f} {top:.1f}V{bottom:.1f}H{right:.1f}" stroke="#444444" '
                    'stroke-width="1" fill="none"/>')
         if legend:
             out.append(_legend(legend, top - _LEGEND_ROW * rows))
+        out.append("</g>")
         return "".join(out)
 
     @staticmethod
     def _item_svg(it: _Item, p: Panel, xlo: float, xhi: float, ylo: float, yhi: float, left: float,
                   right: float, top: float, bottom: float, columns: int) -> str:
-        style = f'stroke="{it.color}" stroke-width="{it.width:g}" fill="none"'
+        style = f'stroke="{it.color}" stroke-width="{it.width:g}" fill="none" vector-effect="non-scaling-stroke"'
         if it.dash:
             style += f' stroke-dasharray="{it.dash}"'
         if it.opacity < 1.0:
@@ -457,3 +475,93 @@ def _legend(placed: list[tuple[_Item, float, int]], y0: float) -> str:
                        f'stroke-width="{max(it.width, 1.4):g}"{dash}{opacity}/>')
         out.append(_text(x0 + 28.0, cy + 4.0, it.label or "", size=11.0))
     return "".join(out)
+
+
+#: The page's zoom on x, for every ``<svg data-zoom="x">``: drag across a plot to zoom its x
+#: axis (every panel of the figure together), double-click to go back. The data are moved by a
+#: transform (strokes keep their width); the x grid and labels are drawn again for the new range.
+#: Long records are drawn as their min/max envelope, so a zoom shows that envelope magnified.
+ZOOM_SCRIPT = r"""
+(function () {
+  var NS = 'http://www.w3.org/2000/svg';
+  function fmt(v) {
+    if (v === 0) return '0';
+    var a = Math.abs(v);
+    if (a >= 1e5 || a < 1e-3) { var e = Math.floor(Math.log10(a)); return (v / Math.pow(10, e)).toFixed(0) + 'e' + e; }
+    return String(parseFloat(v.toPrecision(6)));
+  }
+  function linear(lo, hi, n) {
+    var raw = (hi - lo) / n, mag = Math.pow(10, Math.floor(Math.log10(raw))), step = 10 * mag;
+    [1, 2, 2.5, 5, 10].some(function (m) { if (raw <= m * mag * 1.0001) { step = m * mag; return true; } return false; });
+    var out = [];
+    for (var k = Math.ceil(lo / step - 1e-9); k * step <= hi + 1e-9 * step; k++) out.push(Math.abs(k * step) < 1e-12 * step ? 0 : k * step);
+    return {major: out, minor: []};
+  }
+  function logTicks(lo, hi) {
+    var d0 = Math.floor(Math.log10(lo)), d1 = Math.ceil(Math.log10(hi));
+    if (d1 - d0 <= 1) return linear(lo, hi, 8);
+    var every = Math.max(1, Math.ceil((d1 - d0) / 8)), major = [], minor = [];
+    for (var d = d0; d <= d1; d++) {
+      var p = Math.pow(10, d);
+      if ((d - d0) % every === 0 && p >= lo && p <= hi * (1 + 1e-9)) major.push(p);
+      if (every === 1 && d1 - d0 <= 8) for (var m = 2; m < 10; m++) if (m * p >= lo && m * p <= hi) minor.push(m * p);
+    }
+    return {major: major, minor: minor};
+  }
+  function zoomable(svg) {
+    var panels = Array.prototype.slice.call(svg.querySelectorAll('g.panel'));
+    if (!panels.length) return;
+    var L = +panels[0].dataset.left, R = +panels[0].dataset.right, view = [0, 1], start = null;
+    var band = document.createElementNS(NS, 'rect');
+    band.setAttribute('fill', '#1f77b4'); band.setAttribute('fill-opacity', '0.15'); band.setAttribute('visibility', 'hidden');
+    svg.appendChild(band);
+    function point(evt) {
+      var pt = svg.createSVGPoint(); pt.x = evt.clientX; pt.y = evt.clientY;
+      return pt.matrixTransform(svg.getScreenCTM().inverse());
+    }
+    function unit(x) { return view[0] + (Math.min(R, Math.max(L, x)) - L) / (R - L) * (view[1] - view[0]); }
+    function draw() {
+      var s = 1 / (view[1] - view[0]);
+      panels.forEach(function (g) {
+        g.querySelector('g.data').setAttribute('transform', 'translate(' + (L - s * (L + view[0] * (R - L))) + ',0) scale(' + s + ',1)');
+        var x0 = +g.dataset.x0, x1 = +g.dataset.x1, log = g.dataset.scale === 'log', top = +g.dataset.top, bottom = +g.dataset.bottom;
+        function u(v) { return log ? (Math.log10(v) - Math.log10(x0)) / (Math.log10(x1) - Math.log10(x0)) : (v - x0) / (x1 - x0); }
+        function at(w) { return log ? Math.pow(10, Math.log10(x0) + w * (Math.log10(x1) - Math.log10(x0))) : x0 + w * (x1 - x0); }
+        function px(v) { return L + (u(v) - view[0]) * s * (R - L); }
+        var lo = at(view[0]), hi = at(view[1]), t = log ? logTicks(lo, hi) : linear(lo, hi, 8);
+        var axis = g.querySelector('g.xaxis'), paths = axis.querySelectorAll('path');
+        paths[0].setAttribute('d', t.minor.map(function (v) { return 'M' + px(v).toFixed(1) + ' ' + top + 'V' + bottom; }).join(''));
+        paths[1].setAttribute('d', t.major.map(function (v) { return 'M' + px(v).toFixed(1) + ' ' + top + 'V' + bottom; }).join(''));
+        Array.prototype.slice.call(axis.querySelectorAll('text')).forEach(function (n) { axis.removeChild(n); });
+        if (g.dataset.labels === '1') t.major.forEach(function (v) {
+          var n = document.createElementNS(NS, 'text');
+          n.setAttribute('x', px(v).toFixed(1)); n.setAttribute('y', bottom + 15); n.setAttribute('text-anchor', 'middle');
+          n.textContent = fmt(v); axis.appendChild(n);
+        });
+      });
+    }
+    svg.addEventListener('mousedown', function (evt) {
+      var p = point(evt);
+      if (p.x < L || p.x > R) return;
+      start = p.x; evt.preventDefault();
+      var top = +panels[0].dataset.top, bottom = +panels[panels.length - 1].dataset.bottom;
+      band.setAttribute('y', top); band.setAttribute('height', bottom - top);
+      band.setAttribute('x', start); band.setAttribute('width', 0); band.setAttribute('visibility', 'visible');
+    });
+    svg.addEventListener('mousemove', function (evt) {
+      if (start === null) return;
+      var x = Math.min(R, Math.max(L, point(evt).x));
+      band.setAttribute('x', Math.min(start, x)); band.setAttribute('width', Math.abs(x - start));
+    });
+    window.addEventListener('mouseup', function (evt) {
+      if (start === null) return;
+      var x = point(evt).x, wide = Math.abs(x - start) > 3, a = unit(Math.min(start, x)), b = unit(Math.max(start, x));
+      start = null; band.setAttribute('visibility', 'hidden');
+      if (wide && b - a > 1e-9) { view = [a, b]; draw(); }
+    });
+    svg.addEventListener('dblclick', function () { view = [0, 1]; draw(); });
+    svg.style.cursor = 'crosshair';
+  }
+  Array.prototype.slice.call(document.querySelectorAll('svg[data-zoom]')).forEach(zoomable);
+})();
+"""
