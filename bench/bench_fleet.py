@@ -76,7 +76,7 @@ def measure(logs: list[tuple[str, str]], options: dict, workers: int, threads: i
         rss_start = client.run(_rss_kb)
         opts = {**options, "threads": threads}
         # one log per worker first: imports, numba's cache, the first allocation
-        warm = [client.submit(identify_log, *logs[i % len(logs)], opts, workers=[w], pure=False)
+        warm = [client.submit(identify_log, *logs[i % len(logs)], options=opts, workers=[w], pure=False)
                 for i, w in enumerate(client.scheduler_info()["workers"])]
         client.gather(warm)
         times, failed = [], 0

@@ -6,10 +6,15 @@ task cannot finish is Dask's own retry machinery, set to one retry:
 
 - the task raises an unexpected error (not a :class:`CommissionError`): ``submit(retries=1)``;
 - the worker process dies on it (a crash, killed for memory): the scheduler moves the task to
-  another worker until it has killed ``distributed.scheduler.allowed-failures`` + 1 of them. The
-  local cluster sets that to 1; an existing cluster keeps its own setting (Dask's default is 3).
+  another worker until it has killed ``distributed.scheduler.allowed-failures`` + 1 of them.
 
-Either way the log then becomes a ``crashed`` row and the batch goes on.
+The scheduler blames a death on every task the dead worker held, running or waiting, so the
+local cluster sends a worker only the task it runs (``distributed.scheduler.worker-saturation``
+1.0; it applies when the batch has more logs than twice the workers' threads, Dask's queuing
+rule) and allows one failure. An existing cluster keeps its scheduler's settings (Dask's
+defaults: 3 failures, saturation 1.1); start it with ``DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES=1``
+and ``DASK_DISTRIBUTED__SCHEDULER__WORKER_SATURATION=1.0`` for the same policy. Either way the log
+then becomes a ``crashed`` row and the batch goes on.
 """
 
 from __future__ import annotations
@@ -25,11 +30,13 @@ from ..exceptions import CommissionError
 
 __all__ = ["ClusterError", "ClusterInfo", "Task", "connect", "identify_all"]
 
-#: A task: (source path, content SHA-256, identification options as a mapping) → row.
-Task = Callable[[str, str, Mapping[str, Any]], dict[str, Any]]
+#: A task: ``task(source path, content SHA-256, options=identification options as a mapping)`` → row.
+Task = Callable[..., dict[str, Any]]
 
-#: How long to wait for a scheduler to answer, and for it to have a worker [s].
-CONNECT_TIMEOUT_S = 30.0
+#: How long to wait for a scheduler to answer [s] (Dask retries a refused connection until then).
+CONNECT_TIMEOUT_S = 10.0
+#: How long to wait for the scheduler to have a worker [s] (a cluster's workers may be starting).
+WORKERS_TIMEOUT_S = 30.0
 
 
 class ClusterError(CommissionError):
@@ -61,7 +68,8 @@ def connect(scheduler: str | None, workers: int | None = None) -> Iterator[tuple
     cluster = None
     try:
         if scheduler is None:
-            with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+            with dask.config.set({"distributed.scheduler.allowed-failures": 1,
+                                  "distributed.scheduler.worker-saturation": 1.0}):
                 # processes, not threads: the identifier holds the GIL in its Python stages
                 # no dashboard, and its HTTP server on a free loopback port (not 8787, perhaps taken)
                 cluster = LocalCluster(n_workers=workers or CPU_COUNT, threads_per_worker=1, processes=True,
@@ -79,10 +87,10 @@ def connect(scheduler: str | None, workers: int | None = None) -> Iterator[tuple
         raise
     try:
         try:
-            client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
+            client.wait_for_workers(1, timeout=WORKERS_TIMEOUT_S)
         except TimeoutError as err:
             raise ClusterError(f"the Dask scheduler at {scheduler} has no workers "
-                               f"(waited {CONNECT_TIMEOUT_S:g} s)") from err
+                               f"(waited {WORKERS_TIMEOUT_S:g} s)") from err
         info = client.scheduler_info()
         found = info.get("workers", {})
         yield client, ClusterInfo(scheduler=str(info.get("address", scheduler)), local=cluster is not None,
@@ -102,11 +110,12 @@ def identify_all(client: Any, logs: Sequence[tuple[str, str]], options: Mapping[
     from .table import crashed_row
 
     batch = uuid.uuid4().hex[:8]
-    futures = {}
-    for source, digest in logs:
-        # a readable key (the dashboard shows it), unique per run: a re-run must not meet an old result
-        key = f"identify-{digest[:12]}-{batch}"
-        futures[client.submit(task, source, digest, dict(options), key=key, pure=False, retries=1)] = (source, digest)
+    # one map, so the scheduler sees the whole batch at once and queues it (module docstring); keys
+    # readable (the dashboard shows them) and unique per run, so a re-run never meets an old result
+    keys = [f"identify-{digest[:12]}-{batch}" for _, digest in logs]
+    submitted = client.map(task, [s for s, _ in logs], [d for _, d in logs], key=keys, options=dict(options),
+                           pure=False, retries=1)
+    futures = dict(zip(submitted, logs))
     for future in as_completed(futures):
         source, digest = futures[future]
         try:

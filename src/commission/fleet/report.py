@@ -216,7 +216,7 @@ def render_fleet_report(rows: Sequence[Mapping[str, Any]], growth_threshold_deg:
     counts = {s: sum(r["status"] == s.value for r in rows) for s in LogStatus}
     approximate = sum(r.get("approximate") is True for r in rows)
     parts = ["<h1>Fleet report</h1>",
-             f'<p class="sub">{len(rows)} logs of {len(axes)} axes · {counts[LogStatus.OK]} identified '
+             f'<p class="sub">{len(rows)} logs of {len(axes)} ax{"is" if len(axes) == 1 else "es"} · {counts[LogStatus.OK]} identified '
              f"({approximate} approximate) · {counts[LogStatus.FAILED]} failed · {counts[LogStatus.CRASHED]} "
              f"crashed · backlash growth threshold {growth_threshold_deg:g}°</p>"]
     if grown:
