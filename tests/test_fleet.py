@@ -283,6 +283,8 @@ def test_bad_fleet_input_is_one_line_and_a_nonzero_exit(tmp_path: Path) -> None:
     assert run.code == 3 and run.stderr.count("\n") == 1 and "missing.mcap" in run.stderr
     run = run_cli("--replay", empty, out=tmp_path / "out")
     assert run.code == 3 and "no .mcap or .csv logs" in run.stderr
+    run = run_cli("--replay", empty, "--workers", "0", out=tmp_path / "out")
+    assert run.code == 2 and run.stderr.count("\n") == 1 and "--workers" in run.stderr
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "fleet.parquet").write_text("not a table")
     _simulate(empty / "a.mcap", 0.3, seed=1)

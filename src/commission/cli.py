@@ -415,12 +415,13 @@ def _fleet(args: argparse.Namespace, config: Config, term: _Terminal, out_dir: P
     from . import fleet
     from .exceptions import ConfigError
 
-    try:
-        options = fleet.FleetOptions(scheduler=args.scheduler, workers=args.workers,
-                                     growth_threshold_deg=args.growth_threshold,
-                                     identification=_identifier_options(config, args))
-    except ValueError as err:  # pydantic's ValidationError
-        raise ConfigError(f"fleet options: {err}") from err
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers must be at least 1, got {args.workers}")
+    if not args.growth_threshold >= 0:
+        raise ConfigError(f"--growth-threshold must be 0° or more, got {args.growth_threshold}")
+    options = fleet.FleetOptions(scheduler=args.scheduler, workers=args.workers,
+                                 growth_threshold_deg=args.growth_threshold,
+                                 identification=_identifier_options(config, args))
     summary = fleet.run(args.replay, out_dir, options,
                         progress=lambda done, total, detail: term.progress("fleet", done, total, detail))
     term.close()

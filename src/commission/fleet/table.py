@@ -3,7 +3,7 @@
 A row is what :func:`identify_log` returns: a flat dict of scalars (where the log came from, the
 drive's identity, the record's start, the identified model with its 95 % intervals, the fit's
 verdict, and for a log that failed, why). It is all that travels back through the scheduler, so a
-row stays a few hundred bytes however long the record. Column names carry their SI unit.
+row stays about a kilobyte however long the record. Column names carry their SI unit.
 
 Logs are known by the SHA-256 of their bytes: a re-run skips every log whose content is in the
 table already (moved or renamed logs too), except those whose worker crashed, which are tried again.
