@@ -4,7 +4,7 @@ One task per log: it takes the log's path (the workers read the logs themselves,
 must see the same paths: a shared folder on a cluster) and returns its row. What happens when a
 task cannot finish is Dask's own retry machinery, set to one retry:
 
-- the task raises an unexpected error (not a :class:`CommissionError`): ``submit(retries=1)``;
+- the task raises an unexpected error (not a :class:`CommissionError`): ``Client.map(retries=1)``;
 - the worker process dies on it (a crash, killed for memory): the scheduler moves the task to
   another worker until it has killed ``distributed.scheduler.allowed-failures`` + 1 of them.
 
