@@ -309,7 +309,10 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     identify = _identifier(config, args, term)
 
     if args.replay is not None:
-        if len(args.replay) > 1 or args.replay[0].is_dir() or args.scheduler is not None:
+        # a folder is a fleet, unless it is named like a log (then reading it says what is wrong)
+        one = args.replay[0]
+        if len(args.replay) > 1 or args.scheduler is not None or (
+                one.is_dir() and one.suffix.lower() not in (".mcap", ".csv")):
             return _fleet(args, config, term, out_dir, result)
         args.replay = args.replay[0]
         return _replay(args, config, term, identify, out_dir, result)
