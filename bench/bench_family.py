@@ -242,9 +242,26 @@ def _short(k: str) -> str:
 
 
 def worst(rows: list[dict[str, Any]], count: int) -> list[str]:
-    bad = sorted((r for r in rows if r["verdict"] != "within" or not r["covered"]),
-                 key=lambda r: (-severity(r), r["index"]))
-    return [f"  {r['id']}  {r['label']}\n           → {what_went_wrong(r)}" for r in bad[:count]]
+    """Silently wrong members first (all), then per reason of no result a few examples, then the
+    flagged members furthest off; a member is one line and what went wrong."""
+    def line(r: dict[str, Any]) -> str:
+        return f"  {r['id']}  {r['label']}\n           → {what_went_wrong(r)}"
+
+    out = [line(r) for r in sorted((r for r in rows if r["verdict"] == "silently_wrong"), key=severity,
+                                   reverse=True)]
+    groups: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for r in rows:
+        if r["verdict"] == "no_result":
+            groups[reason(r["error"])].append(r)
+    per_reason = max(1, count // max(1, len(groups)))
+    for g in sorted(groups.values(), key=len, reverse=True):
+        out += [line(r) for r in g[:per_reason]]
+        if len(g) > per_reason:
+            out.append(f"           (same reason: {', '.join(r['id'] for r in g[per_reason:])})")
+    flagged = sorted((r for r in rows if r["verdict"] == "approximate" and not r["within_tolerance"]),
+                     key=severity, reverse=True)
+    out += [line(r) for r in flagged[:count]]
+    return out
 
 
 def compare(old_rows: list[dict[str, Any]], new_rows: list[dict[str, Any]]) -> list[str]:
@@ -360,7 +377,7 @@ def main(argv: list[str] | None = None) -> int:
         report += ["", f"compared with {args.compare}:", *compare(old_rows, rows)]
     print("\n".join(report))
     if not args.no_record:
-        _record(args, argv, len(indices), lines, breakdown(rows), worst(rows, 5))
+        _record(args, argv, len(indices), lines, breakdown(rows), worst(rows, 6))
     return 0
 
 
