@@ -55,15 +55,11 @@ _VERDICT_TEXT = {"within": "within tolerance, not flagged", "approximate": "flag
 
 
 def options_for(m: Member, resolution_from_duration: bool = False) -> IdentificationOptions:
-    """The identifier's options for a member: band and residual low-pass from its chirp (what a
-    user configures with the chirp); optionally an FRD resolution the record's length allows."""
-    x = m.excitation
-    extra: dict[str, Any] = {}
+    """The identifier's options for a member: the defaults, as a user runs it (the identifier takes
+    the band and the resolution from the record); optionally an FRD resolution of 1/duration."""
     if resolution_from_duration:
-        extra["resolution_hz"] = max(0.1, 1.0 / m.duration_s)
-    defaults = IdentificationOptions()
-    return IdentificationOptions(band_hz=(x.f_start_hz, x.f_end_hz),
-                                 residual_cutoff_hz=max(defaults.residual_cutoff_hz, x.f_end_hz), **extra)
+        return IdentificationOptions(resolution_hz=max(0.1, 1.0 / m.duration_s))
+    return IdentificationOptions()
 
 
 def _estimates(result: Any) -> dict[str, Any]:

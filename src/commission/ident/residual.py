@@ -81,7 +81,7 @@ independent (the effective degrees of freedom used for intervals in
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -101,7 +101,9 @@ __all__ = [
     "motor_interpolant",
     "torque_residual",
     "residual_vector",
-    "predictor_residual",
+    "motor_part",
+    "Observer",
+    "OPEN_LOOP",
 ]
 
 #: Interior points checked per step (and per remaining part of a step) for grazing events.
@@ -123,6 +125,10 @@ _STIFF_STEP = 2.0
 _SATURATED = 25.0
 #: Partial steps per sample interval before the rest is finished in the current mode.
 _MAX_PARTS = 200
+#: Most sub-steps per interval in the stiff zone of the load's smooth sign. Only parameters far
+#: from any plant need more (F_cl/J_l ≫ the plant's: a load inertia driven to zero by a fit); there
+#: the simulation may go unstable, and the fit steps back from its non-finite residual.
+_MAX_STIFF_PARTS = 64
 
 
 # ----------------------------------------------------------------------------
@@ -180,7 +186,7 @@ def _gap_state(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: fl
     # stiff zone of the smooth sign: |v̇| ≤ decay·|v| + cj bounds how near zero v can get
     rate_ts = cj * ivs * ts / _STIFF_STEP
     if rate_ts > n and abs(vl) * ivs < _STIFF_ZONE + (decay * abs(vl) + cj) * ts * ivs:
-        n = int(math.ceil(rate_ts))
+        n = min(int(math.ceil(rate_ts)), _MAX_STIFF_PARTS)
     h = ts / n
     x = xl
     v = vl
@@ -313,12 +319,25 @@ def _exact_contact(cm: NDArray[np.float64], c: NDArray[np.float64], k: int, Ts: 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K: float, D: float,
                    eps: float, xl0: float, vl0: float, F_l: float, ivs: float, cm: NDArray[np.float64],
-                   friction: bool) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], int]:
-    """Load driven by the spline motor position through the dead-zone spring.
+                   friction: bool, motor_part: NDArray[np.float64], gain: float,
+                   lp: NDArray[np.float64], load_meas: NDArray[np.float64], load_gain: float
+                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+                              NDArray[np.float64], int, NDArray[np.float64], NDArray[np.float64]]:
+    """Load driven by the spline motor position through the dead-zone spring, corrected after every
+    sample by the observer (``gain`` = 0: open loop).
 
-    Returns (I0, I1, xl, vl, events): I0[k] = ∫₀¹ y(k+s) ds, I1[k] = ∫₀¹ s·y(k+s) ds over each of
-    the N−1 sample intervals [rad]; xl, vl the load state at the N samples; events the number of
-    contact/separation events located.
+    Returns (I0, I1, xl, vl, events, e, el): I0[k] = ∫₀¹ y(k+s) ds, I1[k] = ∫₀¹ s·y(k+s) ds over each
+    of the N−1 sample intervals [rad]; xl, vl the load state at the N samples; events the number of
+    contact/separation events located; e the motor-equation residual at samples 1 … N−2 [N·m],
+    ``motor_part`` + the triangle-averaged shaft torque (``motor_part`` = J_m·Δ²x/Ts² + B_m·v (+ F_cm·sgn)
+    − τ at samples 1 … N−2); el the load position's prediction error x_l,sim − x_l,meas at samples
+    0 … N−1 before each correction [rad] (zeros without a load encoder).
+
+    Observer. When sample k's interval is integrated, its residual e_k is known (the triangle kernel
+    spans k − 1 … k + 1). It is filtered by the causal biquad ``lp`` = (b0, b1, b2, a1, a2) and moves
+    the load position by ``gain``·ẽ_k [rad per N·m]. With a load encoder (``load_meas``, shape (N,),
+    else shape (0,)) the load position then moves the fraction ``load_gain`` of the way to the
+    measured one. The contact mode is classified again after a correction.
 
     Events. Separation (contact → gap): the penetration p = side·y is scanned on the cubic
     Hermite interpolant of the step (end values and slopes, interior points for grazing), the
@@ -349,6 +368,11 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
     elif z < -eps:
         side = -1.0
     events = 0
+    E = np.zeros(m - 1)
+    EL = np.zeros(m + 1)
+    has_load = load_meas.shape[0] == m + 1
+    w1 = 0.0
+    w2 = 0.0
     for k in range(m):
         xl_out[k] = xl
         vl_out[k] = vl
@@ -371,7 +395,7 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                         xa, da = _motor(c, k, s)
                         _, a0 = _accel(xa, da / Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
                         if abs(vl) * ivs < _STIFF_ZONE + abs(a0) * (1.0 - s) * Ts * ivs:
-                            send = s + (1.0 - s) / math.ceil(rate_h)
+                            send = s + (1.0 - s) / min(math.ceil(rate_h), _MAX_STIFF_PARTS)
                 h = (send - s) * Ts
                 exact = False
                 if send == 1.0 and s == 0.0:
@@ -498,9 +522,28 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                 side = 1.0 if zh > 0.0 else -1.0
                 s = se
                 events += 1
+        if k >= 1:
+            e = motor_part[k - 1] + K * (I1[k - 1] + I0[k] - I1[k]) + D * (I0[k] - I0[k - 1]) / Ts
+            E[k - 1] = e
+            if gain != 0.0:
+                ef = lp[0] * e + w1
+                w1 = lp[1] * e - lp[3] * ef + w2
+                w2 = lp[2] * e - lp[4] * ef
+                xl += gain * ef
+        if has_load:
+            EL[k + 1] = xl - load_meas[k + 1]
+            xl -= load_gain * EL[k + 1]
+        if eps > 0.0 and (gain != 0.0 or load_gain != 0.0):
+            xe, _ = _motor(c, k, 1.0)
+            if xe - xl > eps:
+                side = 1.0
+            elif xe - xl < -eps:
+                side = -1.0
+            else:
+                side = 0.0
     xl_out[m] = xl
     vl_out[m] = vl
-    return I0, I1, xl_out, vl_out, events
+    return I0, I1, xl_out, vl_out, events, E, EL
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -670,6 +713,11 @@ class LoadSimulation:
     """Simulated load velocity at samples 0 … N−1 [rad/s]."""
     events: int
     """Contact and separation events located inside steps."""
+    residual: NDArray[np.float64]
+    """Motor-equation residual at samples 1 … N−2 [N·m] (zeros' shaft torque when no motor part
+    was given)."""
+    load_error: NDArray[np.float64]
+    """With a load encoder: x_l,sim − x_l,meas at samples 0 … N−1, before each correction [rad]."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -847,8 +895,76 @@ def _lagged_torque(u: NDArray[np.float64], e: float, g1: float, g2: float) -> ND
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class Observer:
+    """The load-state observer of the residual (gain 0: the load simulated open loop).
+
+    Over many impacts of a light, stiff or lightly damped load, the load simulated open loop from
+    the sampled motor position parts from the real one (the bouncing in the gap is chaotic), and
+    even the true parameters leave a large residual. Corrected after every sample by its own
+    motor-equation residual e (x_l += gain·ẽ, ẽ = e through a causal low-pass that keeps the
+    encoder's quantization noise out of the correction), the simulated load follows the real one:
+    the residual is then the one-step prediction error of a fixed-gain predictor whose state is the
+    load's, the estimator a prediction-error method (Ljung, *System Identification*, ch. 7).
+    The gain is fixed for a fit (it is not a parameter: a stronger correction always lowers the
+    residual, so the fit would take the largest), from a bandwidth and the start's K and D.
+    """
+
+    gain_rad_per_nm: float = 0.0
+    """Load-position correction per N·m of filtered residual [rad/(N·m)]."""
+    lowpass: NDArray[np.float64] = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0, 0.0]))
+    """Causal biquad on the residual before the correction: (b0, b1, b2, a1, a2)."""
+    bandwidth_hz: float = 0.0
+    """Bandwidth of the correction: the fraction 1 − exp(−2π·bandwidth/fs) of a twist error is
+    removed per sample [Hz]."""
+    filter_hz: float | None = None
+    """Cut-off of the low-pass on the residual [Hz] (None: none)."""
+    load_gain: float = 0.0
+    """With a load encoder: the fraction of the way to the measured load position the simulated one
+    moves after each sample [-]."""
+
+    @classmethod
+    def design(cls, sample_rate_hz: float, bandwidth_hz: float, filter_hz: float | None, K: float,
+               D: float, load_encoder: bool = False) -> Observer:
+        """An observer removing 1 − exp(−2π·bandwidth/fs) of a twist error per sample.
+
+        A load-position step δ changes the next residual by (K + D·fs)·δ — the damping's share
+        through the triangle-averaged twist rate — so the gain is that fraction over K + D·fs:
+        normalised by K alone the correction is unstable on damped, soft plants (D·fs ≫ K).
+        """
+        fs = float(sample_rate_hz)
+        alpha = 1.0 - math.exp(-2.0 * math.pi * bandwidth_hz / fs) if bandwidth_hz > 0 else 0.0
+        lp = np.array([1.0, 0.0, 0.0, 0.0, 0.0])
+        if filter_hz is not None and filter_hz < 0.45 * fs:
+            b, a = butter(2, filter_hz, fs=fs)
+            lp = np.array([b[0], b[1], b[2], a[1], a[2]])
+        else:
+            filter_hz = None
+        return cls(gain_rad_per_nm=alpha / (float(K) + float(D) * fs), lowpass=lp,
+                   bandwidth_hz=float(bandwidth_hz), filter_hz=filter_hz, load_gain=alpha if load_encoder else 0.0)
+
+
+#: The open-loop load simulation.
+OPEN_LOOP = Observer()
+_NONE = np.zeros(0)
+
+
+def motor_part(problem: ResidualProblem, J_m: float, B_m: float, *, coulomb_motor_nm: float = 0.0,
+               lag_s: float = 0.0) -> NDArray[np.float64]:
+    """J_m·Δ²x_m/Ts² + B_m·v_m + F_cm·sgn(v_m) − τ at samples 1 … N−2 [N·m]: the motor equation
+    without the shaft torque (τ: the torque behind a first-order current loop of time constant
+    ``lag_s`` [s], see :func:`lagged_torque`)."""
+    trq = problem.torque if lag_s <= 0.0 or problem.torque_ref is None else \
+        lagged_torque(problem.torque_ref, problem.sample_rate_hz, lag_s)
+    out = J_m * problem.acceleration + B_m * problem.velocity - trq
+    if coulomb_motor_nm != 0.0 and problem.coulomb is not None:
+        out = out + coulomb_motor_nm * problem.coulomb
+    return np.ascontiguousarray(out)
+
+
 def simulate_load(problem: ResidualProblem, J_l: float, B_l: float, K: float, D: float,
-                  epsilon_rad: float, coulomb_load_nm: float | None = None) -> LoadSimulation:
+                  epsilon_rad: float, coulomb_load_nm: float | None = None, *,
+                  motor: NDArray[np.float64] | None = None, observer: Observer = OPEN_LOOP) -> LoadSimulation:
     """Simulate the load driven by the measured motor position (see module docstring).
 
     :param coulomb_load_nm: load-side Coulomb friction F_cl [N·m], as F_cl·tanh(ẋ_l/v_s)
@@ -856,27 +972,37 @@ def simulate_load(problem: ResidualProblem, J_l: float, B_l: float, K: float, D:
         are exact without the term; with it, at any value, 0 included, they are exact where the
         load moves faster than ``_SATURATED``·v_s (the smooth sign is then ±1, the friction a
         constant force) and RK4 elsewhere — a choice made by the load's speed, not by F_cl, so the
-        simulation is one smooth function of F_cl down to its bound 0, as finite differences
-        need. (Choosing by F_cl == 0 put the difference between an exact step and an RK4 one,
-        what ~3e-10 N·m of friction changes, into the F_cl column: 2 % off on the reference
-        plant.)
+        simulation is one smooth function of F_cl down to its bound 0, as finite differences need.
+    :param motor: :func:`motor_part` (N−2,); needed by an observer, and gives the residual.
+    :param observer: the load-state correction (default: none, open loop).
     """
     Ts = 1.0 / problem.sample_rate_hz
     xl0 = -problem.initial_twist_rad  # motor position is shifted to start at 0
     F_l = 0.0 if coulomb_load_nm is None else float(coulomb_load_nm)
     ivs = 1.0 / problem.velocity_scale_rad_s
+    gain = observer.gain_rad_per_nm
+    if motor is None:
+        if gain != 0.0:
+            raise ValueError("an observer needs the motor part of the residual")
+        motor = np.zeros(problem.n_samples - 2)
     cm = contact_map(Ts, float(K) / float(J_l), float(D) / float(J_l), float(B_l) / float(J_l))
-    I0, I1, xl, vl, events = _simulate_load(problem.spline, Ts, float(J_l), float(B_l), float(K),
-                                           float(D), max(float(epsilon_rad), 0.0), xl0, 0.0, F_l, ivs, cm,
-                                           coulomb_load_nm is not None)
+    load = problem.load_position if problem.load_position is not None and observer.load_gain != 0.0 else _NONE
+    I0, I1, xl, vl, events, e, el = _simulate_load(problem.spline, Ts, float(J_l), float(B_l), float(K), float(D),
+                                                   max(float(epsilon_rad), 0.0), xl0, 0.0, F_l, ivs, cm,
+                                                   coulomb_load_nm is not None, motor, float(gain), observer.lowpass,
+                                                   load, float(observer.load_gain))
     ts = _shaft_torque_tri(I0, I1, float(K), float(D), Ts)
-    return LoadSimulation(shaft_torque=ts, load_position=xl, load_velocity=vl, events=int(events))
+    if load.shape[0] == 0 and problem.load_position is not None:
+        el = xl - problem.load_position
+    return LoadSimulation(shaft_torque=ts, load_position=xl, load_velocity=vl, events=int(events), residual=e,
+                          load_error=el)
 
 
 def torque_residual(problem: ResidualProblem, J_m: float, J_l: float, B_m: float, B_l: float,
                     K: float, D: float, epsilon_rad: float, *,
                     load_weight_nm_per_rad: float | None = None, coulomb_motor_nm: float = 0.0,
-                    coulomb_load_nm: float | None = None, lag_s: float = 0.0) -> Residual:
+                    coulomb_load_nm: float | None = None, lag_s: float = 0.0,
+                    observer: Observer = OPEN_LOOP) -> Residual:
     """r = J_m·Δ²x_m/Ts² + B_m·v_m + F_cm·tanh(v_m/v_s) + τ_s(sim) − τ(τ_ref), low-passed
     zero-phase, and its RMS cost.
 
@@ -886,15 +1012,12 @@ def torque_residual(problem: ResidualProblem, J_m: float, J_l: float, B_m: float
     :param coulomb_load_nm: load-side Coulomb friction F_cl [N·m] (in the load simulation;
         None: not modelled, see :func:`simulate_load`).
     :param lag_s: time constant T_c = 1/ω_c of a first-order current loop [s] (0: ideal).
+    :param observer: the load-state correction (:class:`Observer`; default none).
     """
-    sim = simulate_load(problem, J_l, B_l, K, D, epsilon_rad, coulomb_load_nm)
-    vec = _vector(problem, sim, J_m, B_m, K, load_weight_nm_per_rad, coulomb_motor_nm, lag_s)
-    trq = problem.torque if lag_s <= 0.0 or problem.torque_ref is None else \
-        lagged_torque(problem.torque_ref, problem.sample_rate_hz, lag_s)
-    raw = J_m * problem.acceleration + B_m * problem.velocity + sim.shaft_torque - trq
-    if coulomb_motor_nm != 0.0 and problem.coulomb is not None:
-        raw = raw + coulomb_motor_nm * problem.coulomb
-    res = sosfiltfilt(problem.sos, raw)
+    motor = motor_part(problem, J_m, B_m, coulomb_motor_nm=coulomb_motor_nm, lag_s=lag_s)
+    sim = simulate_load(problem, J_l, B_l, K, D, epsilon_rad, coulomb_load_nm, motor=motor, observer=observer)
+    vec = _vector(problem, sim, K, load_weight_nm_per_rad)
+    res = sosfiltfilt(problem.sos, sim.residual)
     cost = float(np.sqrt(np.mean(vec * vec)))
     return Residual(residual=res, vector=vec, cost=cost, simulation=sim)
 
@@ -902,119 +1025,18 @@ def torque_residual(problem: ResidualProblem, J_m: float, J_l: float, B_m: float
 def residual_vector(problem: ResidualProblem, J_m: float, J_l: float, B_m: float, B_l: float,
                     K: float, D: float, epsilon_rad: float, *,
                     load_weight_nm_per_rad: float | None = None, coulomb_motor_nm: float = 0.0,
-                    coulomb_load_nm: float | None = None, lag_s: float = 0.0) -> NDArray[np.float64]:
+                    coulomb_load_nm: float | None = None, lag_s: float = 0.0,
+                    observer: Observer = OPEN_LOOP) -> NDArray[np.float64]:
     """Only the decimated residual vector of :func:`torque_residual` (the fast path for fits)."""
-    sim = simulate_load(problem, J_l, B_l, K, D, epsilon_rad, coulomb_load_nm)
-    return _vector(problem, sim, J_m, B_m, K, load_weight_nm_per_rad, coulomb_motor_nm, lag_s)
+    motor = motor_part(problem, J_m, B_m, coulomb_motor_nm=coulomb_motor_nm, lag_s=lag_s)
+    sim = simulate_load(problem, J_l, B_l, K, D, epsilon_rad, coulomb_load_nm, motor=motor, observer=observer)
+    return _vector(problem, sim, K, load_weight_nm_per_rad)
 
 
-def _vector(problem: ResidualProblem, sim: LoadSimulation, J_m: float, B_m: float, K: float,
-            load_weight_nm_per_rad: float | None, coulomb_motor_nm: float = 0.0,
-            lag_s: float = 0.0) -> NDArray[np.float64]:
-    d = problem.decimation
-    ts_f = _filtfilt_decimate(problem.sos, problem.zi, sim.shaft_torque, problem.padlen, d)
-    vec = J_m * problem.acceleration_f + B_m * problem.velocity_f + ts_f - problem.lagged_torque_f(lag_s)
-    if coulomb_motor_nm != 0.0 and problem.coulomb_f is not None:
-        vec = vec + coulomb_motor_nm * problem.coulomb_f
+def _vector(problem: ResidualProblem, sim: LoadSimulation, K: float,
+            load_weight_nm_per_rad: float | None) -> NDArray[np.float64]:
+    vec = problem.lowpass(sim.residual)
     if problem.load_position is not None:
         w = float(K if load_weight_nm_per_rad is None else load_weight_nm_per_rad)
-        vec = np.concatenate((vec, w * (sim.load_position - problem.load_position)[1:-1:d]))
+        vec = np.concatenate((vec, w * sim.load_error[1:-1:problem.decimation]))
     return vec
-
-
-# ----------------------------------------------------------------------------
-# load-state predictor (impact-rich plants)
-# ----------------------------------------------------------------------------
-#: Gain α of :func:`predictor_residual` (x_l += α·e/K after every sample). Measured at the true
-#: parameters (bench/bench_predictor.py): 100 Hz ζ 0.05 leaves 32 % of τ_ref without it, 0.10 %
-#: at α = 0.05, 0.04 % (the noise floor) at 0.1, and ε ±10 % then still costs 35–40× the truth;
-#: the reference plant stays at 0.03 % with ε ±10 % 10× it.
-PREDICTOR_GAIN = 0.1
-#: RK4 sub-steps per sample of the predictor's load simulation (fixed step, exact dead zone).
-#: Measured at the true parameters (seed 3): 100 Hz ζ 0.05 leaves 0.035 / 0.033 / 0.038 % of τ_ref
-#: with 8 / 4 / 2 sub-steps, J_l/J_m = 2 60 Hz ζ 0.07 0.031 / 0.032 / 0.033 %; 15 ms per
-#: simulation with 4.
-PREDICTOR_SUBSTEPS = 4
-
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _pred_shaft(c: NDArray[np.float64], k: int, s: float, Ts: float, x: float, v: float,
-                K: float, D: float, eps: float) -> float:
-    """Shaft torque [N·m] at k + s for load state (x, v) and the motor spline: dead zone ±eps."""
-    a3 = c[k, 0]
-    a2 = c[k, 1]
-    a1 = c[k, 2]
-    a0 = c[k, 3]
-    z = ((a3 * s + a2) * s + a1) * s + a0 - x
-    if -eps <= z <= eps:
-        return 0.0
-    vm = ((3.0 * a3 * s + 2.0 * a2) * s + a1) / Ts
-    return K * (z - eps if z > eps else z + eps) + D * (vm - v)
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _predicted_innovations(c: NDArray[np.float64], Ts: float, torque: NDArray[np.float64],
-                           acc: NDArray[np.float64], vel: NDArray[np.float64], J_m: float, B_m: float,
-                           J_l: float, B_l: float, K: float, D: float, eps: float, xl0: float,
-                           alpha: float, beta: float, nsub: int) -> NDArray[np.float64]:
-    """Motor-equation residual at samples 1 … N−2 [N·m], the load state corrected after each.
-
-    The load is stepped by RK4 on ``nsub`` fixed sub-steps per sample (dead zone exact at the
-    stage points, no event location); the shaft torque is triangle-averaged at the samples as in
-    the motor equation (Simpson per sub-step). After sample k is complete its residual e is fed
-    back as a Newton step on the shaft torque: x_l += α·e/K, v_l += β·e/(K·Ts).
-    """
-    m = c.shape[0]
-    T = np.zeros(m + 1)
-    E = np.zeros(m + 1)
-    x = xl0
-    v = 0.0
-    h = Ts / nsub
-    w = 1.0 / (6.0 * nsub)
-    for k in range(m):
-        for j in range(nsub):
-            s0 = j / nsub
-            sm = s0 + 0.5 / nsub
-            s1 = s0 + 1.0 / nsub
-            t1 = _pred_shaft(c, k, s0, Ts, x, v, K, D, eps)
-            a1 = (t1 - B_l * v) / J_l
-            v2 = v + 0.5 * h * a1
-            t2 = _pred_shaft(c, k, sm, Ts, x + 0.5 * h * v, v2, K, D, eps)
-            a2 = (t2 - B_l * v2) / J_l
-            v3 = v + 0.5 * h * a2
-            t3 = _pred_shaft(c, k, sm, Ts, x + 0.5 * h * v2, v3, K, D, eps)
-            a3 = (t3 - B_l * v3) / J_l
-            v4 = v + h * a3
-            t4 = _pred_shaft(c, k, s1, Ts, x + h * v3, v4, K, D, eps)
-            a4 = (t4 - B_l * v4) / J_l
-            x += h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
-            v += h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-            tm = 0.5 * (t2 + t3)
-            T[k] += w * ((1.0 - s0) * t1 + 4.0 * (1.0 - sm) * tm + (1.0 - s1) * t4)
-            T[k + 1] += w * (s0 * t1 + 4.0 * sm * tm + s1 * t4)
-        if k >= 1:
-            e = J_m * acc[k - 1] + B_m * vel[k - 1] + T[k] - torque[k - 1]
-            E[k] = e
-            x += alpha * e / K
-            v += beta * e / (K * Ts)
-    return E[1:-1]
-
-
-def predictor_residual(problem: ResidualProblem, J_m: float, J_l: float, B_m: float, B_l: float,
-                       K: float, D: float, epsilon_rad: float, *, gain: float = PREDICTOR_GAIN,
-                       velocity_gain: float = 0.0, substeps: int = PREDICTOR_SUBSTEPS) -> NDArray[np.float64]:
-    """The motor-equation residual with a load-state predictor, low-passed and decimated as
-    :func:`residual_vector` (motor block only; no friction or lag terms) [N·m].
-
-    The plain residual re-simulates the load open loop from the sampled motor position; over
-    many impacts of a stiff or lightly damped load that simulation decorrelates from the real
-    load (chaotic bouncing in the gap), and even the true parameters leave a large residual.
-    Here every sample's residual e corrects the simulated load (x_l += gain·e/K, v_l +=
-    velocity_gain·e/(K·Ts)), so the simulation follows the real load; ``gain = 0`` is an open-loop
-    simulation (fixed-step, a little less exact than :func:`simulate_load`).
-    """
-    e = _predicted_innovations(problem.spline, 1.0 / problem.sample_rate_hz, problem.torque,
-                               problem.acceleration, problem.velocity, float(J_m), float(B_m), float(J_l),
-                               float(B_l), float(K), float(D), max(float(epsilon_rad), 0.0),
-                               -problem.initial_twist_rad, float(gain), float(velocity_gain), int(substeps))
-    return problem.lowpass(e)

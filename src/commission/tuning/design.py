@@ -647,7 +647,7 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
     amount = 2.0 * mdl.epsilon_rad if (mdl.backlash and opt.backlash_compensation) else 0.0
     ratio_unexplained = _residual_ratio(model)
     # a residual the identification found to be white, stationary noise is no sign of a wrong ε
-    noise_limited = bool(_joint_detail(model).get("noise_limited", False))
+    noise_limited = bool(getattr(getattr(model, "fit", None), "noise_limited", False))
     if (amount > 0.0 and ratio_unexplained is not None and ratio_unexplained > opt.backlash_max_residual_ratio
             and noise_limited):
         notes.append(f"backlash compensation kept although the identified model leaves {100 * ratio_unexplained:.2f} % "
@@ -693,25 +693,15 @@ def design(model: Any, options: TuningOptions | None = None, *, epsilon_rad: flo
                    position_margins=loop_margins(settings, p, loop="position"))
 
 
-def _joint_detail(model: Any) -> dict[str, Any]:
-    """The joint-fit stage's detail of a hybrid identification ({} when there is none)."""
-    try:
-        return dict(model.stage("joint").detail)
-    except (AttributeError, KeyError, TypeError):
-        return {}
-
-
 def _residual_ratio(model: Any) -> float | None:
-    """RMS residual / RMS torque of a hybrid identification's joint fit (None when unknown)."""
-    try:
-        return float(_joint_detail(model)["residual_ratio"])
-    except (KeyError, TypeError, ValueError):
-        return None
+    """RMS residual / RMS torque of a hybrid identification (None when unknown)."""
+    quality = getattr(model, "fit", None)
+    return None if quality is None else float(quality.residual_ratio)
 
 
 def _approximate(model: Any) -> bool:
     """Whether a hybrid identification said its result is approximate (False when unknown)."""
-    return bool(_joint_detail(model).get("approximate", False))
+    return bool(getattr(getattr(model, "fit", None), "approximate", False))
 
 
 def approach_time_constant(p: TwoMassParameters, kpos: float, opt: TuningOptions) -> tuple[float, str]:
