@@ -10,7 +10,7 @@ wrong (not flagged, outside tolerance), no result at all (by reason), the covera
 95 % ε interval, the median and 95th-percentile time, breakdowns by class, and the worst
 members. A dated summary is appended to bench/results/family.md.
 
-    python bench/bench_family.py                    # default: every 4th member (50), ~8 min
+    python bench/bench_family.py                    # default: every 4th member (50), a few minutes
     python bench/bench_family.py --subset 1         # the whole family (200 members)
     python bench/bench_family.py --subset 1 --jobs 2 --out run.jsonl   # accuracy only, faster
     python bench/bench_family.py --compare bench/results/family-baseline.jsonl --out new.jsonl
@@ -42,7 +42,8 @@ from sim_drive.family import DEFAULT_SEED, DEFAULT_SIZE, Member, member
 
 RESULTS = Path(__file__).resolve().parent / "results" / "family.md"
 DEFAULT_SUBSET = 4
-"""Every k-th member by default: the whole family takes ~25 min sequentially on 2 cores."""
+"""Every k-th member by default (``make bench``): with today's identifier the whole family takes
+about half an hour sequentially on 2 cores (bench/results/family.md has the measured runs)."""
 
 EPS_TOL_DEG = 0.01
 EPS_TOL_REL = 0.02
@@ -72,7 +73,7 @@ def _estimates(result: Any) -> dict[str, Any]:
     fit = d.get("fit", {})
     return {"estimate": est, "interval_deg": list(d["backlash"]["epsilon_interval_deg"]),
             "approximate": bool(fit.get("approximate", False)), "residual_ratio": fit.get("residual_ratio"),
-            "detected": bool(d["backlash"].get("detected", True)), "notes": list(d.get("notes", []))}
+            "detected": bool(d["backlash"].get("detected", True))}
 
 
 def judge(truth: dict[str, Any], est: dict[str, Any]) -> dict[str, Any]:
@@ -169,7 +170,8 @@ def summary(rows: list[dict[str, Any]], timing_note: str) -> list[str]:
                f"{_pct(covered, len(results))}")
     out.append(f"time per identification [s] ({timing_note}): median {_percentile(times, 50):.2f}, "
                f"95th percentile {_percentile(times, 95):.2f}, max {max(times, default=math.nan):.2f} "
-               f"(results only; all members incl. refusals: median {_percentile(all_times, 50):.2f})")
+               f"(results only; every member, failures too: median {_percentile(all_times, 50):.2f}, "
+               f"95th percentile {_percentile(all_times, 95):.2f})")
     failures = Counter(reason(r["error"]) for r in rows if r["verdict"] == "no_result")
     if failures:
         out.append("no result, by reason:")
@@ -233,6 +235,17 @@ def what_went_wrong(r: dict[str, Any]) -> str:
     return f"{flags}: " + (", ".join(bad) or "all within") + cov
 
 
+def _same(a: Any, b: Any) -> bool:
+    """Equal JSON values, floats within 1e-9 relative (another machine's libm may differ in the last bit)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, float) and isinstance(b, (int, float)) and not isinstance(b, bool):
+        return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-300)
+    return bool(a == b)
+
+
 def _short(k: str) -> str:
     return {"f_resonance_hz": "f_r", "f_antiresonance_hz": "f_a"}.get(k, k)
 
@@ -266,7 +279,7 @@ def compare(old_rows: list[dict[str, Any]], new_rows: list[dict[str, Any]]) -> l
     common = [r for r in new_rows if r["id"] in old]
     out = [f"compared on {len(common)} members both runs hold "
            f"({len(new_rows) - len(common)} new only, {len(old_rows) - len(common)} old only)"]
-    changed_truth = [r["id"] for r in common if r["true"] != old[r["id"]]["true"]]
+    changed_truth = [r["id"] for r in common if not _same(r["true"], old[r["id"]]["true"])]
     if changed_truth:
         out.append(f"WARNING: {len(changed_truth)} members have different true values (family changed): "
                    + ", ".join(changed_truth[:10]))
@@ -281,6 +294,13 @@ def compare(old_rows: list[dict[str, Any]], new_rows: list[dict[str, Any]]) -> l
     tn = [r["time_s"] for r in common if r["verdict"] != "no_result"]
     out.append(f"  median time {_percentile(to, 50):.2f} → {_percentile(tn, 50):.2f} s, 95th percentile "
                f"{_percentile(to, 95):.2f} → {_percentile(tn, 95):.2f} s")
+    both = [(old[r["id"]], r) for r in common if "estimate" in r and "estimate" in old[r["id"]]]
+    d_eps = [abs(n["estimate"]["epsilon_deg"] - o["estimate"]["epsilon_deg"]) for o, n in both]
+    d_rel = [max(abs(n["estimate"][k] / o["estimate"][k] - 1.0) for k in ("J_m", "J_l", "K")) for o, n in both]
+    moved = sum(1 for e, p in zip(d_eps, d_rel) if e > 1e-4 or p > 1e-4)
+    out.append(f"  estimates moved (ε by > 1e-4° or J_m, J_l, K by > 1e-4 relative): {moved} of {len(both)} "
+               f"members with a result in both; largest |Δε| {max(d_eps, default=0.0):.4f}°, largest relative "
+               f"J/K change {100 * max(d_rel, default=0.0):.2f} %")
     moves = Counter((old[r["id"]]["verdict"], r["verdict"]) for r in common
                     if old[r["id"]]["verdict"] != r["verdict"])
     if moves:
@@ -367,7 +387,8 @@ def main(argv: list[str] | None = None) -> int:
         if out_file:
             out_file.close()
     elapsed = time.perf_counter() - t_start
-    lines = [f"bench wall time {elapsed / 60:.1f} min (simulation included)", *summary(rows, timing)]
+    lines = [f"bench wall time {elapsed / 60:.1f} min (simulation included); load average at the end "
+             f"{os.getloadavg()[0]:.1f} (wall times inflate with load)", *summary(rows, timing)]
     report = ["", *lines, "", "by class:", *breakdown(rows), "", "worst members:", *worst(rows, args.worst)]
     if old_rows is not None:
         report += ["", f"compared with {args.compare}:", *compare(old_rows, rows)]

@@ -33,9 +33,14 @@ with the total inertia (60–250 rad/s²), and the bias is 3A unless that would
 drive the rigid axis, J·v̇ = τ − B·v, faster than the member's bias speed
 (10–25 rad/s): lightly damped plants, whose viscous friction must be small for
 a resonance damping ratio of 0.03, get a smaller bias instead of running away.
+Then both amplitudes are scaled down, where needed, so that the linear plant's
+motor speed under the whole excitation stays within ``SPEED_LIMIT_RAD_S`` (a
+lightly damped resonance with a heavy load moves the motor more than the bias).
+The bias frequency is the paper's 0.1 Hz, or 1/duration on records shorter
+than 10 s, so that every record holds a whole bias period.
 
 Damping. The viscous friction alone damps the resonance (at 20 Hz with a 50 ms
-time constant, ζ ≈ 0.06), so a drawn damping ratio is reached by first
+time constant, ζ = 0.08–0.5 depending on the inertia ratio), so a drawn damping ratio is reached by first
 lengthening the mechanical time constant until the friction gives at most half
 of it, then solving for the shaft damping D; the stiffness is corrected so
 that the resonance of the damped plant is the drawn one.
