@@ -6,6 +6,7 @@ A result is *approximate* when
 * the model leaves more than ``APPROXIMATE_FACTOR`` × max(good-fit level, quantization floor) of
   the torque unexplained and that residual is not white, stationary noise — the axis has dynamics
   the model does not reproduce, and the parameters may be biased beyond their intervals; or
+* the drive samples fewer than ``SAMPLES_PER_RESONANCE`` times per resonance period; or
 * its 95 % interval is wider than what commissioning needs: ε to ``EPSILON_TOLERANCE_DEG`` or
   ``RELATIVE_TOLERANCE`` of itself, J_m, J_l and K to ``RELATIVE_TOLERANCE`` — the record does not
   determine them (a short or noisy record, a backlash the excitation barely opens).
@@ -30,6 +31,10 @@ APPROXIMATE_FACTOR = 5.0
 #: Spectral flatness and window-RMS stationarity of a residual that is white torque noise.
 WHITE_FLATNESS = 0.95
 WHITE_STATIONARY = 1.3
+#: Below this many samples per resonance period the motor's motion between samples, which the load
+#: simulation interpolates, limits K and J_l to several percent (bench/bench_family.py: no member
+#: under 22 was within the tolerances).
+SAMPLES_PER_RESONANCE = 25.0
 #: What commissioning needs of the result (the tolerances of bench/bench_family.py).
 EPSILON_TOLERANCE_DEG = 0.01
 RELATIVE_TOLERANCE = 0.02
@@ -52,7 +57,7 @@ def whiteness(v: NDArray[np.float64], rate_hz: float) -> tuple[float, float]:
 
 def assess(fit: PemFit, *, torque_rms_nm: float, motor_samples: int, decimated_rate_hz: float,
            good_fit_ratio: float, noise_floor_ratio: float, cutoff_hz: float,
-           observer_bandwidth_hz: float) -> FitQuality:
+           observer_bandwidth_hz: float, sample_rate_hz: float, resonance_hz: float) -> FitQuality:
     """The fit's quality (see the module docstring).
 
     :param motor_samples: length of the residual's motor block (before edge trimming).
@@ -68,6 +73,10 @@ def assess(fit: PemFit, *, torque_rms_nm: float, motor_samples: int, decimated_r
                        f"({ratio / max(good_fit_ratio, noise_floor_ratio):.0f}× what a model that describes the "
                        "axis leaves), and not as white noise: the axis has dynamics the model does not reproduce; "
                        "the parameters may be off by more than their intervals")
+    if sample_rate_hz < SAMPLES_PER_RESONANCE * resonance_hz:
+        reasons.append(f"the drive samples only {sample_rate_hz / resonance_hz:.0f}× per resonance period "
+                       f"({resonance_hz:.0f} Hz at {sample_rate_hz:g} Hz): the motor's motion between samples is "
+                       "interpolated, and K and J_l may be off by several percent")
     eps_deg = math.degrees(fit.epsilon_rad)
     half = 1.96 * fit.stderr("eps_deg")
     if not half <= max(EPSILON_TOLERANCE_DEG, RELATIVE_TOLERANCE * eps_deg):

@@ -18,15 +18,15 @@ equation; load Coulomb friction F_cl·tanh(ẋ_l/v_s) in the load simulation; a 
 loop T_c·τ̇ = τ_ref − τ. A term is kept when its Wald statistic (value/σ)² exceeds ln n_eff (the
 BIC's price of a parameter); the fit is then repeated without the others.
 
-Uncertainty. cov = s²·(JᵀJ)⁻¹ at the optimum, s² = SSR/(n − p), inflated by n/n_eff where n_eff
-counts the residual's independent samples from its autocorrelation (Bartlett-weighted sum of
-ρ_k, k ≤ 20): the low-passed residual of a model that is not exact is correlated, and ignoring
-that made the intervals too narrow.
+Uncertainty. The Newey–West (HAC) covariance at the optimum: the residual of a model that is not
+exact is correlated with itself and with the Jacobian, which s²·(JᵀJ)⁻¹ ignores. n_eff, the
+residual's independent samples from its autocorrelation, prices a term in the selection.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
@@ -98,6 +98,9 @@ class PemFit:
     message: str
     selection: dict[str, dict[str, float | bool]] = field(default_factory=dict)
     """Per candidate term: its Wald z², the threshold ln n_eff, kept."""
+    discretization: dict[str, float] = field(default_factory=dict)
+    """Per coordinate: how far the estimate moves under the alternate discretizations (in
+    ``covariance`` already)."""
 
     def stderr(self, name: str) -> float:
         """Standard error of a coordinate (NaN when not in the fit)."""
@@ -207,17 +210,36 @@ def _n_effective(r: NDArray[np.float64]) -> float:
     return float(n / max(1.0, 1.0 + 2.0 * float(np.sum(w * rho))))
 
 
+def _covariance(J: NDArray[np.float64], r: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Heteroscedasticity- and autocorrelation-consistent covariance of a least-squares estimate
+    (Newey–West: H⁻¹·S·H⁻¹, H = JᵀJ, S the Bartlett-weighted sum of the score products J_t·r_t over
+    lags up to ``_ACF_LAGS``). What a fit leaves of a model error is correlated with the Jacobian's
+    columns; s²·H⁻¹ assumes it is not, and its intervals came out too narrow."""
+    G = J * r[:, None]
+    S = G.T @ G
+    for k in range(1, min(_ACF_LAGS, r.size - 1) + 1):
+        C = G[k:].T @ G[:-k]
+        S += (1.0 - k / (_ACF_LAGS + 1.0)) * (C + C.T)
+    Hinv = np.linalg.pinv(J.T @ J)
+    n, p = J.shape
+    return (n / max(n - p, 1)) * Hinv @ S @ Hinv
+
+
 def fit(problem: ResidualProblem, start: TwoMassParameters, epsilon_rad: float, terms: ModelTerms,
         observer: Observer, *, coulomb_motor_nm: float = 0.0, coulomb_load_nm: float = 0.0, lag_s: float = 0.0,
         epsilon_max_rad: float,
         load_weight_nm_per_rad: float = 0.0, threads: int = 2, max_nfev: int = 40,
-        hold_epsilon: bool = True) -> PemFit:
+        hold_epsilon: bool = True, alternates: Sequence[tuple[ResidualProblem, Observer]] = ()) -> PemFit:
     """Least squares of every parameter from ``start`` and ``epsilon_rad`` (see the module docstring).
 
     :param coulomb_motor_nm: start of F_cm [N·m]; ``coulomb_load_nm``: of F_cl [N·m].
     :param lag_s: start of T_c [s].
     :param epsilon_max_rad: upper bound of ε [rad].
     :param hold_epsilon: first fit the others with ε held (a start from a scan cell).
+    :param alternates: other discretizations of the same residual (another motor interpolation,
+        another observer bandwidth; the same samples): the Gauss–Newton step each would take from
+        the optimum is the estimate's sensitivity to how the model is discretized, added to its
+        covariance as a systematic error (:attr:`PemFit.discretization`).
     """
     obj = _Objective(problem, observer, terms, load_weight_nm_per_rad)
     ref = float(np.sqrt(np.mean(problem.torque_f ** 2)))
@@ -248,24 +270,35 @@ def fit(problem: ResidualProblem, start: TwoMassParameters, epsilon_rad: float, 
     J = np.asarray(res.jac)  # type: ignore[attr-defined]
     n, k = r.size, z.size
     n_eff = _n_effective(r[:problem.acceleration_f.size - 2 * EDGE_SAMPLES])
-    s2 = float(r @ r) / max(n - k, 1)
     try:
-        cov = s2 * max(n / n_eff, 1.0) * np.linalg.pinv(J.T @ J)
+        cov = _covariance(J, r)
+        Jp = np.linalg.pinv(J)
     except np.linalg.LinAlgError:
-        cov = np.full((k, k), math.nan)
+        cov, Jp = np.full((k, k), math.nan), None
+    shifts = []
+    for alt_problem, alt_observer in alternates:
+        alt = _Objective(alt_problem, alt_observer, terms, load_weight_nm_per_rad)
+        alt.bad = obj.bad
+        ra = alt(z)
+        if Jp is not None and ra.shape == r.shape and np.all(np.isfinite(ra)):
+            shifts.append(-(Jp @ (ra - r)))
+    for d in shifts:
+        cov = cov + np.outer(d, d)
     p, eps, extra = obj.unpack(z)
     return PemFit(parameters=p, epsilon_rad=eps, coulomb_motor_nm=extra.get("F_cm", 0.0),
                   coulomb_load_nm=extra.get("F_cl", 0.0), lag_s=1e-6 * extra.get("T_c_us", 0.0), terms=terms,
                   residual=r, cost_nm=float(np.sqrt(np.mean(r * r))), names=obj.names, covariance=cov,
-                  n_effective=n_eff, evaluations=obj.calls, converged=bool(res.status > 0),  # type: ignore[attr-defined]
-                  message=str(res.message))  # type: ignore[attr-defined]
+                  n_effective=n_eff, evaluations=obj.calls + len(shifts), converged=bool(res.status > 0),  # type: ignore[attr-defined]
+                  message=str(res.message),  # type: ignore[attr-defined]
+                  discretization={n: float(np.sqrt(sum(d[i] ** 2 for d in shifts))) for i, n in enumerate(obj.names)})
 
 
 _TERM_COORDINATE = {"coulomb_motor": "F_cm", "coulomb_load": "F_cl", "current_loop": "T_c_us"}
 
 
 def select_terms(problem: ResidualProblem, result: PemFit, observer: Observer, *, epsilon_max_rad: float,
-                 load_weight_nm_per_rad: float = 0.0, threads: int = 2, keep_all: bool = False) -> PemFit:
+                 load_weight_nm_per_rad: float = 0.0, threads: int = 2, keep_all: bool = False,
+                 alternates: Sequence[tuple[ResidualProblem, Observer]] = ()) -> PemFit:
     """Keep the terms whose Wald z² = (value/σ)² exceeds ln n_eff; refit without the others."""
     threshold = math.log(max(result.n_effective, 2.0))
     selection: dict[str, dict[str, float | bool]] = {}
@@ -284,5 +317,6 @@ def select_terms(problem: ResidualProblem, result: PemFit, observer: Observer, *
     refit = fit(problem, result.parameters, result.epsilon_rad, terms, observer,
                 coulomb_motor_nm=result.coulomb_motor_nm, coulomb_load_nm=result.coulomb_load_nm,
                 lag_s=result.lag_s, epsilon_max_rad=epsilon_max_rad,
-                load_weight_nm_per_rad=load_weight_nm_per_rad, threads=threads, max_nfev=20, hold_epsilon=False)
+                load_weight_nm_per_rad=load_weight_nm_per_rad, threads=threads, max_nfev=20, hold_epsilon=False,
+                alternates=alternates)
     return replace(refit, evaluations=refit.evaluations + result.evaluations, selection=selection)

@@ -25,6 +25,7 @@ import functools
 import math
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -48,6 +49,8 @@ _FRICTION_SCREEN = 0.02
 _SCAN_STEP = 5
 #: Quantization floor the residual's low-pass is lowered to, in good-fit levels.
 _QUANTIZATION_TARGET = 2.5
+#: Scans at the fitted linear parameters at most (each followed by a fit when its best ε differs).
+_RESCANS = 2
 
 
 class _Stages:
@@ -143,7 +146,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
     from .frd import estimate_frd
     from .residual import Observer, prepare_residual
     from .scan import EPSILON_EXTEND_MAX_DEG, Scan, ScanCell, scan
-    from .start import Start, frequency_start, load_encoder_start, residual_cutoff
+    from .start import Start, frequency_start, load_encoder_start, measured_band_hz, residual_cutoff
 
     notes: list[str] = []
     fs = rec.sample_rate_hz
@@ -185,6 +188,9 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
                      f"{cut['unlowered_cutoff_hz']:.0f} Hz — a finer encoder would let the fit see more")
     if rec.motor_position is None:
         notes.append("motor position rebuilt from the velocity (x[k] = x[k−1] + Ts·v[k])")
+    if use_load:
+        notes.append("load encoder used: the start from both encoders' equations of motion, the initial twist "
+                     "from the encoders, and a load-position block K̂·(x_l,sim − x_l,meas) in the residual")
     w_load = float(base.K) if use_load else 0.0
     lag0 = max(start.delay_s - 1.0 / fs, 0.0) if candidates.current_loop and start is not None else 0.0
     st.done("start", parameters=base.as_dict(), how=start.how if start else "load encoder",
@@ -241,22 +247,60 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
     friction = max(friction_rescan["coulomb_nm"] if friction_rescan else cell.coulomb_nm, 0.0)
     eps_max = math.radians(2.0 * max(top_deg, math.degrees(cell.epsilon_rad)))
     f_load = (friction_rescan or {}).get("load_nm", 0.5 * friction)
-    pem = fit(problem, p0, cell.epsilon_rad, terms, observer,
+    # the same residual discretized otherwise: its motor position a global spline, its observer half
+    # as fast (the estimate's sensitivity to them is part of its uncertainty)
+    other = prepare_residual(rec.torque_ref, fs, motor_position=rec.motor_position, motor_velocity=rec.motor_velocity,
+                             cutoff_hz=fc, load_position=rec.load_position if use_load else None,
+                             velocity_scale_rad_s=opt.coulomb_velocity_scale_rad_s,
+                             interpolation="spline" if opt.motor_interpolation == "local" else "local")
+    alternates = ((other, observer),
+                  (problem, Observer.design(fs, 0.5 * opt.observer_bandwidth_factor * fc, 2.0 * fc, p0.K, p0.D,
+                                            load_encoder=use_load)))
+    # continuation in the observer's gain: a slow observer first (the cost's basin in the linear
+    # parameters is wide), then the configured one from there (it follows impact-rich loads)
+    slow = alternates[1][1]
+    pem = fit(problem, p0, cell.epsilon_rad, terms, slow,
               coulomb_motor_nm=friction - f_load if terms.coulomb_load else friction,
               coulomb_load_nm=f_load, lag_s=lag0, epsilon_max_rad=eps_max,
               load_weight_nm_per_rad=w_load, threads=opt.threads, max_nfev=opt.max_fit_evaluations)
+    fast = fit(problem, pem.parameters, pem.epsilon_rad, terms, observer, alternates=alternates,
+               coulomb_motor_nm=pem.coulomb_motor_nm, coulomb_load_nm=pem.coulomb_load_nm, lag_s=pem.lag_s,
+               epsilon_max_rad=eps_max, load_weight_nm_per_rad=w_load, threads=opt.threads,
+               max_nfev=opt.max_fit_evaluations, hold_epsilon=False)
+    pem = replace(fast, evaluations=fast.evaluations + pem.evaluations)
+    # the scan again at the fit's linear parameters (which moved toward the plant's even where its ε
+    # did not): block-coordinate descent, a global step in ε between local fits, until the scan's best
+    # cell is the fit's own
+    rounds = 0
+    while enc is None and rounds < _RESCANS and math.isfinite(pem.cost_nm):
+        again = scan(problem, pem.parameters, opt.epsilon_bounds_deg, step, opt.damping_splits,
+                     coulomb=candidates.coulomb_motor or candidates.coulomb_load, lag_s=pem.lag_s,
+                     load_weight_nm_per_rad=w_load, threads=opt.threads, phi_around=True)
+        best = _best_cell(again)
+        rounds += 1
+        if best is None or abs(best.epsilon_rad - pem.epsilon_rad) <= 2.5 * math.radians(step):
+            break
+        other = fit(problem, best.parameters, best.epsilon_rad, terms, observer, alternates=alternates,
+                    coulomb_motor_nm=pem.coulomb_motor_nm, coulomb_load_nm=pem.coulomb_load_nm, lag_s=pem.lag_s,
+                    epsilon_max_rad=eps_max, load_weight_nm_per_rad=w_load, threads=opt.threads,
+                    max_nfev=opt.max_fit_evaluations)
+        calls = pem.evaluations + other.evaluations + again.evaluations
+        pem = replace(other if other.cost_nm < pem.cost_nm else pem, evaluations=calls)
+        if other.cost_nm >= pem.cost_nm and other is not pem:
+            break
     if terms.any:
         pem = select_terms(problem, pem, observer, epsilon_max_rad=eps_max, load_weight_nm_per_rad=w_load,
-                           threads=opt.threads, keep_all=opt.term_selection == "keep_all")
+                           threads=opt.threads, keep_all=opt.term_selection == "keep_all", alternates=alternates)
     st.done("fit", evaluations=pem.evaluations, converged=pem.converged, message=pem.message,
-            start_epsilon_deg=math.degrees(cell.epsilon_rad), start_phi=cell.phi,
+            start_epsilon_deg=math.degrees(cell.epsilon_rad), start_phi=cell.phi, rescans=rounds,
             observer_gain_rad_per_nm=observer.gain_rad_per_nm, terms=list(pem.terms.names()))
 
     st.start("check", 0.9)
     quality = assess(pem, torque_rms_nm=ref, motor_samples=problem.acceleration_f.size,
                      decimated_rate_hz=fs / problem.decimation, good_fit_ratio=opt.good_fit_ratio,
                      noise_floor_ratio=float(cut["quantization_floor_ratio"]), cutoff_hz=fc,
-                     observer_bandwidth_hz=observer.bandwidth_hz)
+                     observer_bandwidth_hz=observer.bandwidth_hz, sample_rate_hz=fs,
+                     resonance_hz=modes(pem.parameters).f_resonance_hz)
     notes += [f"approximate result: {r}" for r in quality.reasons]
     if quality.noise_limited:
         notes.append(f"the model leaves {100 * quality.residual_ratio:.2f} % of the torque unexplained, but as "
@@ -279,12 +323,13 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
     params = pem.parameters
     num, den = params.velocity_tf()
     return Identification(
-        method=Method.HYBRID, parameters=params, epsilon_rad=eps, epsilon_interval_rad=pem.epsilon_interval_rad,
+        method=Method.HYBRID, parameters=params, epsilon_rad=eps,
+        epsilon_interval_rad=_epsilon_interval(pem, float(cut["position_step_rad"])),
         evaluations=sc.evaluations + pem.evaluations, modes=modes(params), num=num, den=den, delay_s=1.0 / fs,
         iterations=iterations, stages=st.items, source_samples=len(rec), sample_rate_hz=fs,
         backlash_detected=detected, notes=notes, fit=quality, parameter_stderr=pem.relative_stderr,
         parameter_interval=_intervals(pem), friction=_friction(pem, opt), current_loop=_current_loop(pem),
-        selection=pem.selection or None)
+        selection=pem.selection or None, measured_band_hz=measured_band_hz(frd) if start is not None else band)
 
 
 def scan_top_deg(opt: IdentificationOptions) -> float:
@@ -297,11 +342,26 @@ def _best_cell(sc: Any) -> Any:
     return next((c for c in sc.cells if c.parameters is not None and math.isfinite(c.cost_nm)), None)
 
 
+#: Relative resolution of the parameters: the identifier's model (exact contact maps, the motor
+#: position interpolated between samples) and an independent integration of the same plant
+#: (sim_drive's RK4) differ by up to this much on noise-free records.
+_RELATIVE_RESOLUTION = 5e-4
+
+
+def _epsilon_interval(pem: PemFit, position_step_rad: float) -> tuple[float, float]:
+    """ε's 95 % interval [rad], at least ± the motor encoder's step (what the record resolves)."""
+    half = max(1.96 * pem.epsilon_stderr_rad, position_step_rad)
+    if not math.isfinite(half):
+        half = math.inf
+    return max(pem.epsilon_rad - half, 0.0), pem.epsilon_rad + half
+
+
 def _intervals(pem: PemFit) -> dict[str, tuple[float, float]]:
     out = {}
     for name, rel in pem.relative_stderr.items():
         v = float(getattr(pem.parameters, name))
-        out[name] = (v * math.exp(-1.96 * rel), v * math.exp(1.96 * rel)) if math.isfinite(rel) else (math.nan,) * 2
+        half = min(max(1.96 * rel, _RELATIVE_RESOLUTION), 50.0) if math.isfinite(rel) else 50.0  # e^50: unbounded
+        out[name] = (v * math.exp(-half), v * math.exp(half))
     return out
 
 

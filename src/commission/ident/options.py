@@ -51,8 +51,9 @@ class IdentificationOptions(BaseModel):
         "(24-bit encoders, 1e-4 N·m noise: 3e-4); the result is approximate past 5× this above the "
         "noise floor, unless the residual is white noise [-].")
     observer_bandwidth_factor: float = Field(
-        1.5, ge=0, description="Hybrid: bandwidth of the load-state observer as a multiple of the residual's "
-        "cut-off (its low-pass on the residual at twice the cut-off); 0: the load simulated open loop [-].")
+        1.0, ge=0, description="Hybrid: bandwidth of the load-state observer as a multiple of the residual's "
+        "cut-off (its low-pass on the residual at twice the cut-off; the fit starts with half of it); 0: the "
+        "load simulated open loop [-].")
     max_fit_evaluations: int = Field(
         40, ge=5, le=500, description="Hybrid: iterations of the least squares at most.")
     threads: int = Field(2, ge=1, le=64, description="Threads for residual evaluations.")

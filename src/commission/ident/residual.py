@@ -941,7 +941,8 @@ class Observer:
         else:
             filter_hz = None
         return cls(gain_rad_per_nm=alpha / (float(K) + float(D) * fs), lowpass=lp,
-                   bandwidth_hz=float(bandwidth_hz), filter_hz=filter_hz, load_gain=alpha if load_encoder else 0.0)
+                   bandwidth_hz=float(bandwidth_hz), filter_hz=filter_hz,
+                   load_gain=alpha if load_encoder else 0.0)
 
 
 #: The open-loop load simulation.

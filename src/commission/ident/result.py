@@ -96,6 +96,8 @@ class Identification:
     """Kept current-loop lag (hybrid): bandwidth_hz, bandwidth_interval_hz, time_constant_s; None when not kept."""
     selection: dict[str, Any] | None = None
     """Model selection (hybrid): per candidate term its Wald z², the threshold ln n, kept."""
+    measured_band_hz: tuple[float, float] | None = None
+    """The band the record measured with good signal (the FRD's quality), where the model is known [Hz]."""
 
     @property
     def epsilon_deg(self) -> float:
@@ -147,4 +149,6 @@ class Identification:
             out["current_loop"] = dict(self.current_loop)
         if self.selection is not None:
             out["model_selection"] = dict(self.selection)
+        if self.measured_band_hz is not None:
+            out["measured_band_hz"] = [float(v) for v in self.measured_band_hz]
         return out

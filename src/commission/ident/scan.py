@@ -133,12 +133,16 @@ def projected_cell(problem: ResidualProblem, rates: LoadRates, epsilon_rad: floa
 
 def scan(problem: ResidualProblem, start: TwoMassParameters, bounds_deg: tuple[float, float], step_deg: float,
          phis: Sequence[float], *, coulomb: bool = False, lag_s: float = 0.0, load_weight_nm_per_rad: float = 0.0,
-         coulomb_load_nm: float | None = None, threads: int = 2) -> Scan:
+         coulomb_load_nm: float | None = None, threads: int = 2, phi_around: bool = False) -> Scan:
     """Evaluate every (ε, φ) cell around ``start`` (see the module docstring); the ε grid's top is
     doubled, up to :data:`EPSILON_EXTEND_MAX_DEG`, while the best cell lies within 2.5 steps of it.
 
     :param coulomb_load_nm: load Coulomb friction simulated in every cell [N·m] (None: none).
+    :param phi_around: ``start``'s own split as well (a start that is already a fit's).
     """
+    if phi_around:
+        own = start.B_l / (start.B_m + start.B_l) if start.B_m + start.B_l > 0 else 0.5
+        phis = tuple(sorted({*phis, round(own, 12)}))
     rates = {phi: cell_rates(start, phi) for phi in phis}
     rate = None if coulomb_load_nm is None else coulomb_load_nm / start.J_l
 

@@ -315,3 +315,17 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float) -> Enco
     p = TwoMassParameters(J_m=J_m, J_l=J_l, B_m=max(B_m, 1e-3 * S), B_l=max(B_l, 1e-3 * S), K=K,
                           D=max(D, 1e-6 * K))
     return EncoderStart(p, float(eps), max(F_m, 0.0), max(F_l, 0.0), cost)
+
+
+def measured_band_hz(frd: FRD, level: float = 0.5) -> tuple[float, float]:
+    """The band the record measured with good signal [Hz]: from the FRD's first bin up to the last
+    frequency where its quality, averaged over ±5 % of the frequency, is at least ``level``."""
+    f, q = frd.frequency_hz, frd.quality
+    if not np.all(np.isfinite(q)):
+        return float(f[0]), float(f[-1])
+    c = np.concatenate(([0.0], np.cumsum(q)))
+    lo = np.searchsorted(f, 0.95 * f)
+    hi = np.searchsorted(f, 1.05 * f, side="right")
+    smooth = (c[hi] - c[lo]) / np.maximum(hi - lo, 1)
+    good = np.flatnonzero(smooth >= level)
+    return float(f[0]), float(f[good[-1]]) if good.size else float(f[0])
