@@ -223,8 +223,11 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
                       threads=opt.threads)
             cell = _best_cell(sc) or cell
     if cell is None:
-        raise IdentificationError("no cell of the start scan gives a two-mass plant with positive inertias: "
-                                  "the record shows no two-mass plant")
+        # no projection gives positive inertias (the record holds more than a two-mass plant's response):
+        # the fit starts from the frequency-domain start itself, and its quality will say so
+        cell = ScanCell(0.0, math.nan, math.inf, base)
+        notes.append("no cell of the start scan gave positive inertias: the fit starts from the frequency-domain "
+                     "start")
     top_deg = sc.extended_to_deg or scan_top_deg(opt)
     if sc.extended_to_deg:
         notes.append(f"ε scan extended to {sc.extended_to_deg:g}°: its best cell lay at the top of the "
@@ -273,7 +276,8 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
     # cell is the fit's own
     rounds = 0
     while enc is None and rounds < _RESCANS and math.isfinite(pem.cost_nm):
-        again = scan(problem, pem.parameters, opt.epsilon_bounds_deg, step, opt.damping_splits,
+        bounds = (opt.epsilon_bounds_deg[0], max(opt.epsilon_bounds_deg[1], 2.0 * math.degrees(pem.epsilon_rad)))
+        again = scan(problem, pem.parameters, bounds, step, opt.damping_splits,
                      coulomb=candidates.coulomb_motor or candidates.coulomb_load, lag_s=pem.lag_s,
                      load_weight_nm_per_rad=w_load, threads=opt.threads, phi_around=True)
         best = _best_cell(again)
@@ -300,7 +304,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
                      decimated_rate_hz=fs / problem.decimation, good_fit_ratio=opt.good_fit_ratio,
                      noise_floor_ratio=float(cut["quantization_floor_ratio"]), cutoff_hz=fc,
                      observer_bandwidth_hz=observer.bandwidth_hz, sample_rate_hz=fs,
-                     resonance_hz=modes(pem.parameters).f_resonance_hz)
+                     resonance_hz=_resonance_hz(pem.parameters))
     notes += [f"approximate result: {r}" for r in quality.reasons]
     if quality.noise_limited:
         notes.append(f"the model leaves {100 * quality.residual_ratio:.2f} % of the torque unexplained, but as "
@@ -330,6 +334,13 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
         backlash_detected=detected, notes=notes, fit=quality, parameter_stderr=pem.relative_stderr,
         parameter_interval=_intervals(pem), friction=_friction(pem, opt), current_loop=_current_loop(pem),
         selection=pem.selection or None, measured_band_hz=measured_band_hz(frd) if start is not None else band)
+
+
+def _resonance_hz(p: TwoMassParameters) -> float:
+    try:
+        return float(modes(p).f_resonance_hz)
+    except IdentificationError:  # no complex pole pair: nothing resonates
+        return 0.0
 
 
 def scan_top_deg(opt: IdentificationOptions) -> float:

@@ -335,9 +335,12 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
 
     Observer. When sample k's interval is integrated, its residual e_k is known (the triangle kernel
     spans k − 1 … k + 1). It is filtered by the causal biquad ``lp`` = (b0, b1, b2, a1, a2) and moves
-    the load position by ``gain``·ẽ_k [rad per N·m]. With a load encoder (``load_meas``, shape (N,),
-    else shape (0,)) the load position then moves the fraction ``load_gain`` of the way to the
-    measured one. The contact mode is classified again after a correction.
+    the load by ``gain``·ẽ_k [rad per N·m]; with a load encoder (``load_meas``, shape (N,), else
+    shape (0,)) also by the fraction ``load_gain`` of its distance to the measured position. The move
+    is spread over the next interval, as a ramp on the motor position the load sees (an offset that
+    accumulates): the load's state stays continuous and contact and separation are located as
+    always, so the residual stays a continuous function of the parameters (a jump of the load's
+    position would switch modes at once, without event location, and kink the cost).
 
     Events. Separation (contact → gap): the penetration p = side·y is scanned on the cubic
     Hermite interpolant of the step (end values and slopes, interior points for grazing), the
@@ -373,9 +376,17 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
     has_load = load_meas.shape[0] == m + 1
     w1 = 0.0
     w2 = 0.0
+    cs = np.empty((1, 4))
+    offset = 0.0  # corrections applied so far [rad]: the load sits at xl + offset
+    ramp = 0.0    # correction applied over the current interval [rad]
     for k in range(m):
-        xl_out[k] = xl
+        xl_out[k] = xl + offset
         vl_out[k] = vl
+        # the motor as the load sees it: x_m − offset − ramp·s (the load moved by the corrections)
+        cs[0, 0] = c[k, 0]
+        cs[0, 1] = c[k, 1]
+        cs[0, 2] = c[k, 2] - ramp
+        cs[0, 3] = c[k, 3] - offset
         s = 0.0
         guard = 0
         while s < 1.0:
@@ -392,7 +403,7 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                 if cj != 0.0:
                     rate_h = cj * ivs * (1.0 - s) * Ts / _STIFF_STEP
                     if rate_h > 1.0:
-                        xa, da = _motor(c, k, s)
+                        xa, da = _motor(cs, 0, s)
                         _, a0 = _accel(xa, da / Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
                         if abs(vl) * ivs < _STIFF_ZONE + abs(a0) * (1.0 - s) * Ts * ivs:
                             send = s + (1.0 - s) / min(math.ceil(rate_h), _MAX_STIFF_PARTS)
@@ -400,24 +411,24 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                 exact = False
                 if send == 1.0 and s == 0.0:
                     if not friction:  # the common case: a whole interval, linear
-                        xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, c, k, Ts, xl, vl, side, eps, 0.0)
+                        xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, cs, 0, Ts, xl, vl, side, eps, 0.0)
                         exact = True
                     elif abs(vl) * ivs > _SATURATED:
                         # the load moves fast enough that the smooth sign is ±1 in float64 over the
                         # whole interval (checked at its end): a constant force, the step is exact
                         sg = 1.0 if vl > 0.0 else -1.0
-                        xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, c, k, Ts, xl, vl, side, eps,
+                        xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, cs, 0, Ts, xl, vl, side, eps,
                                                                   sg * cj / kj)
                         exact = vn * sg * ivs > _SATURATED
                 if not exact:
                     if send == 1.0:  # with the interval's end a constant (measured: a few % faster)
-                        xn, vn, i0, i1, p1, dp1e = _rk4_contact(c, k, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj,
+                        xn, vn, i0, i1, p1, dp1e = _rk4_contact(cs, 0, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj,
                                                                 cj, ivs)
                     else:
-                        xn, vn, i0, i1, p1, dp1e = _rk4_contact(c, k, s, send, Ts, xl, vl, side, eps, kj, dj, bj,
+                        xn, vn, i0, i1, p1, dp1e = _rk4_contact(cs, 0, s, send, Ts, xl, vl, side, eps, kj, dj, bj,
                                                                 cj, ivs)
                 if eps > 0.0:
-                    xa, da = _motor(c, k, s)
+                    xa, da = _motor(cs, 0, s)
                     p0 = side * (xa - xl - side * eps)
                     dp0 = side * (da / Ts - vl) * h
                     dp1 = dp1e * (send - s)
@@ -443,14 +454,14 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                                 lo = mid
                         se = s + hi * (send - s)
                         # Newton on the actual RK4 step length
-                        xn, vn, i0, i1, pe, dpe = _rk4_contact(c, k, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+                        xn, vn, i0, i1, pe, dpe = _rk4_contact(cs, 0, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
                         for _ in range(4):
                             if abs(pe) <= 1e-15 or dpe == 0.0:
                                 break
                             sn = se - pe / dpe
                             if not (s < sn <= send):
                                 break
-                            xq, vq, iq0, iq1, pq, dpq = _rk4_contact(c, k, s, sn, Ts, xl, vl, side, eps,
+                            xq, vq, iq0, iq1, pq, dpq = _rk4_contact(cs, 0, s, sn, Ts, xl, vl, side, eps,
                                                                      kj, dj, bj, cj, ivs)
                             if abs(pq) >= abs(pe):
                                 break
@@ -471,8 +482,8 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
             else:
                 # --- gap: free viscous decay of the load, exact; motor: the spline, exact
                 h = (1.0 - s) * Ts
-                xa, da = _motor(c, k, s)
-                xc, dc = _motor(c, k, 1.0)
+                xa, da = _motor(cs, 0, s)
+                xc, dc = _motor(cs, 0, 1.0)
                 xn, vn = _gap_state(xl, vl, bj, h, cj, ivs, Ts)
                 z0 = xa - xl
                 z1 = xc - xn
@@ -500,7 +511,7 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                 zh = 0.0
                 for it in range(_BISECT_ITERATIONS + 1):
                     mid = hi if it == 0 else 0.5 * (lo + hi)
-                    xq, _ = _motor(c, k, s + mid * (1.0 - s))
+                    xq, _ = _motor(cs, 0, s + mid * (1.0 - s))
                     xlq, _ = _gap_state(xl, vl, bj, mid * h, cj, ivs, Ts)
                     zq = xq - xlq
                     if zq >= eps or zq <= -eps:
@@ -522,6 +533,8 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                 side = 1.0 if zh > 0.0 else -1.0
                 s = se
                 events += 1
+        offset += ramp
+        ramp = 0.0
         if k >= 1:
             e = motor_part[k - 1] + K * (I1[k - 1] + I0[k] - I1[k]) + D * (I0[k] - I0[k - 1]) / Ts
             E[k - 1] = e
@@ -529,19 +542,11 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                 ef = lp[0] * e + w1
                 w1 = lp[1] * e - lp[3] * ef + w2
                 w2 = lp[2] * e - lp[4] * ef
-                xl += gain * ef
+                ramp = gain * ef
         if has_load:
-            EL[k + 1] = xl - load_meas[k + 1]
-            xl -= load_gain * EL[k + 1]
-        if eps > 0.0 and (gain != 0.0 or load_gain != 0.0):
-            xe, _ = _motor(c, k, 1.0)
-            if xe - xl > eps:
-                side = 1.0
-            elif xe - xl < -eps:
-                side = -1.0
-            else:
-                side = 0.0
-    xl_out[m] = xl
+            EL[k + 1] = xl + offset - load_meas[k + 1]
+            ramp -= load_gain * EL[k + 1]
+    xl_out[m] = xl + offset
     vl_out[m] = vl
     return I0, I1, xl_out, vl_out, events, E, EL
 
