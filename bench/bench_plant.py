@@ -1,4 +1,4 @@
-"""Speed and accuracy of the simulated machine (sim_drive.plant).
+"""Speed and accuracy of the plant physics (commission.plant, the simulated drive's machine).
 
 Run: ``python bench/bench_plant.py``. Prints
 
@@ -24,8 +24,8 @@ import time
 
 import numpy as np
 
-from sim_drive import plant as plant_module
-from sim_drive.plant import Plant, PlantParameters
+from commission import plant as plant_module
+from commission.plant import Plant, PlantParameters
 
 FS = 8000.0
 TS = 1.0 / FS
@@ -112,12 +112,10 @@ def speed() -> None:
 def true_run(params: PlantParameters, u: np.ndarray, substeps: int, locate: bool) -> np.ndarray:
     """Rows: motor velocity, load velocity (sample means, encoders off), twist, shaft torque."""
     p = Plant(params, substeps_per_sample=substeps)
-    p._p[plant_module._P_QM] = 1e-14  # encoders off: rounding to 1e-14 rad is exact enough
-    p._p[plant_module._P_QL] = 1e-14
+    # encoders off: rounding to 1e-14 rad is exact enough
+    kernel = p.kernel._replace(encoder_step_motor_rad=1e-14, encoder_step_load_rad=1e-14)
     out = np.empty((7, u.size))
-    plant_module._simulate(
-        u, np.zeros(u.size), False, 0.0, 0.0, 0.0, p._s, p._p, substeps, TS, locate, out
-    )
+    plant_module._simulate(u, np.zeros(u.size), False, 0.0, 0.0, 0.0, p._s, kernel, locate, out)
     return out[[1, 3, 6, 5]]
 
 

@@ -1,4 +1,4 @@
-"""Tests of the simulated machine (sim_drive.plant) against independent answers.
+"""Tests of the plant physics (commission.plant) against independent answers.
 
 References used:
 - the analytic V_m/T of METHOD.md, written out here from the physical parameters
@@ -19,7 +19,7 @@ import scipy.signal
 from numpy.testing import assert_allclose, assert_array_equal
 from pydantic import ValidationError
 
-from sim_drive.plant import Plant, PlantParameters, PlantResponse
+from commission.plant import Plant, PlantParameters, PlantResponse
 
 FS = 8000.0
 TS = 1.0 / FS
@@ -265,7 +265,7 @@ def test_grazing_contact_is_detected_inside_a_substep() -> None:
     """The dense-output check that catches a boundary excursion starting and ending inside
     one sub-step (a graze), which the end points alone miss. Private helper: a graze of a
     real run changes velocities by ~1e-5 rad/s, below what a run-level test resolves."""
-    from sim_drive.plant import _hermite_exit
+    from commission.plant import _hermite_exit
 
     # g(θ) with g(0) = g(1) = −1 and slopes ±8: the interpolant peaks at +1 at θ = 0.5.
     assert 0.0 < _hermite_exit(-1.0, -1.0, 8.0, -8.0) <= 0.5 + 1e-12

@@ -7,7 +7,10 @@ must be checked in a browser.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import html
+import io
 import json
 import math
 import os
@@ -22,10 +25,14 @@ import pytest
 from commission.cli import main
 from commission.ident.hybrid import identify
 from commission.mcaplog import read_config, read_recording
-from commission.report import REPORT_NAME, render_report, search_history, true_plant_from_config, write_report
+from commission.plant import PlantParameters
+from commission.report import REPORT_NAME, render_report, search_history, write_report
+from commission.sequencer import simulated_plant, tune_and_export
+from commission.tuning import TuningOptions
 
 FIGURES = ["fig-bode", "fig-time", "fig-zoom", "fig-search", "fig-iterations"]
-TUNING_FIGURES = ["fig-openloop", "fig-steps"]
+TUNING_FIGURES = ["fig-openloop", "fig-step", "fig-move", "fig-reversal"]
+ZOOMABLE = ["fig-bode", "fig-time", "fig-zoom", "fig-openloop", "fig-move", "fig-reversal"]
 CHROMIUM_FLAGS = [
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -38,6 +45,28 @@ PROBE = """
 (function () {
   var errors = [];
   window.addEventListener('error', function (e) { errors.push(String(e.message)); });
+  // drag across the middle of the plot, then double-click: the x labels before, zoomed, reset
+  function labels(svg) {
+    var g = svg.querySelector('g.panel[data-labels="1"] g.xaxis');
+    return Array.prototype.map.call(g.querySelectorAll('text'), function (n) { return n.textContent; });
+  }
+  function fire(svg, type, x, y) {
+    var pt = svg.createSVGPoint(); pt.x = x; pt.y = y;
+    var c = pt.matrixTransform(svg.getScreenCTM());
+    svg.dispatchEvent(new MouseEvent(type, {clientX: c.x, clientY: c.y, bubbles: true, view: window}));
+  }
+  function zoom(svg) {
+    var g = svg.querySelector('g.panel'), L = +g.dataset.left, R = +g.dataset.right, y = +g.dataset.top + 10;
+    var out = {before: labels(svg)};
+    fire(svg, 'mousedown', L + 0.3 * (R - L), y);
+    fire(svg, 'mousemove', L + 0.6 * (R - L), y);
+    fire(svg, 'mouseup', L + 0.6 * (R - L), y);
+    out.zoomed = labels(svg);
+    out.transform = svg.querySelector('g.data').getAttribute('transform');
+    fire(svg, 'dblclick', L + 0.5 * (R - L), y);
+    out.reset = labels(svg);
+    return out;
+  }
   function probe() {
     var out = {errors: errors, figures: {}};
     document.querySelectorAll('figure.plot').forEach(function (fig) {
@@ -49,7 +78,8 @@ PROBE = """
         isSvg: !!svg && svg instanceof SVGSVGElement,
         paths: svg ? svg.querySelectorAll('path').length : 0,
         texts: svg ? svg.querySelectorAll('text').length : 0,
-        caption: (fig.querySelector('figcaption') || {textContent: ''}).textContent.length
+        caption: (fig.querySelector('figcaption') || {textContent: ''}).textContent.length,
+        zoom: svg && svg.dataset.zoom ? zoom(svg) : null
       };
     });
     var pre = document.createElement('pre');
@@ -84,43 +114,34 @@ def run(tmp_path_factory: pytest.TempPathFactory):
     return out, log, recording, config, identify(recording)
 
 
-# controller.json's shape (commission.tuning.export.controller_json), with step responses
-TUNING = {
-    "sample_rate_hz": 8000.0,
-    "velocity_loop": {"gain": 0.02, "gain_unit": "N·m·s/rad", "integral_gain": 2.0, "integral_time_s": 0.01,
-                      "bandwidth_hz": 40.0},
-    "position_loop": {"gain_per_s": 50.0, "bandwidth_hz": 7.96},
-    "torque_filter": {"time_constant_s": 2e-4},
-    "notch": [{"frequency_hz": 65.0, "q": 1.0, "depth_db": -20.0, "depth": 0.1}],
-    "backlash_compensation": {"enabled": True, "amount_deg": 0.8, "epsilon_rad": 0.00698},
-    "margins": {"phase_margin_deg": 55.0, "gain_margin_db": 9.0, "crossover_hz": 30.0, "phase_crossover_hz": 120.0,
-                "stable": True},
-    "drive_model": {"current_loop_bandwidth_hz": 2000.0, "computation_delay_samples": 1},
-    "verification": {
-        "ready": True, "reasons": [],
-        "runs": {"proposed": {"step": {"overshoot_pct": 4.2, "settling_time_s": 0.03}}},
-        "step_responses": {
-            "with_compensation": {"t_s": [0.0, 0.01, 0.02, 0.05], "velocity_rad_s": [0.0, 0.6, 0.9, 1.0]},
-            "without_compensation": {"t_s": [0.0, 0.01, 0.02, 0.05], "velocity_rad_s": [0.0, 0.8, 1.2, 1.0]},
-        },
-    },
-}
-
-
 @pytest.fixture(scope="module")
 def report(run) -> Path:
     out, log, recording, config, ident = run
     path = write_report(out, recording, ident, config=config, source_file=log,
-                        files=[log, out / "result.json"])
+                        true_plant=simulated_plant(recording, config), files=[log, out / "result.json"])
     assert path == out / REPORT_NAME
     return path
+
+
+@pytest.fixture(scope="module")
+def tuned(run, tmp_path_factory: pytest.TempPathFactory):
+    """A report with controller settings verified on the simulator's plant, and controller.json."""
+    out, log, recording, config, ident = run
+    folder = tmp_path_factory.mktemp("tuned")
+    plant = simulated_plant(recording, config)
+    tuning = tune_and_export(folder, ident, TuningOptions(), None, plant)
+    check = {"epsilon_deg": 0.41, "spread_deg": 0.02, "reversals": 3, "log": str(folder / "backlash-check.mcap")}
+    page = write_report(folder / REPORT_NAME, recording, ident, config=config, source_file=log, tuning=tuning,
+                        true_plant=plant, backlash_check=check)
+    return page, json.loads((folder / "controller.json").read_text(encoding="utf-8")), tuning
 
 
 def _render(page: Path, tmp_path: Path) -> tuple[dict, Path]:
     """Load ``page`` (plus the probe) in headless Chromium: (probe result, screenshot)."""
     chromium = _chromium()
     probed = tmp_path / "probed.html"
-    probed.write_text(page.read_text(encoding="utf-8").replace("</body>", PROBE + "</body>"), encoding="utf-8")
+    # the probe first in the body: it sees errors of the page's own script too
+    probed.write_text(page.read_text(encoding="utf-8").replace("<body>", "<body>" + PROBE, 1), encoding="utf-8")
     common = [chromium, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1200,9000"]
     dom = subprocess.run([*common, "--virtual-time-budget=10000", "--dump-dom", probed.as_uri()],
                          capture_output=True, text=True, timeout=120)
@@ -147,8 +168,13 @@ def _assert_figures(result: dict, expected: list[str]) -> None:
         assert fig["isSvg"], fig_id
         assert fig["width"] > 600 and fig["height"] > 150, (fig_id, fig)   # laid out, not collapsed
         assert fig["bboxWidth"] > 100 and fig["bboxHeight"] > 100, (fig_id, fig)  # draws something
-        assert fig["paths"] > 8 and fig["texts"] > 5, (fig_id, fig)        # lines, axes and labels
+        assert fig["paths"] >= 3 and fig["texts"] > 5, (fig_id, fig)  # grid, frame and data; axis labels
         assert fig["caption"] > 20, fig_id
+        if fig_id in ZOOMABLE:  # drag zooms the x axis (labels drawn again), double-click goes back
+            z = fig["zoom"]
+            assert z is not None, fig_id
+            assert z["zoomed"] != z["before"] and "scale(" in z["transform"], (fig_id, z)
+            assert z["reset"] == z["before"], (fig_id, z)
 
 
 def _assert_not_blank(shot: Path) -> None:
@@ -161,21 +187,28 @@ def _assert_not_blank(shot: Path) -> None:
     assert (top < 100).mean() > 0.002, "no dark pixels (text, lines) in the screenshot"
 
 
-def test_report_is_self_contained(report: Path) -> None:
-    text = report.read_text(encoding="utf-8")
+def _assert_self_contained(text: str) -> None:
     assert text.startswith("<!DOCTYPE html>")
-    assert "<script" not in text and "<link" not in text and "<img" not in text and "<iframe" not in text
+    # one inline script (the zoom), nothing loaded from elsewhere
+    assert text.count("<script") <= 1 and "<script>" in text or "<script" not in text
+    assert "<link" not in text and "<img" not in text and "<iframe" not in text
     assert not re.search(r"\ssrc=", text)
+    assert not any(call in text for call in ("fetch(", "XMLHttpRequest", "import(", "https://"))
     hrefs = re.findall(r'href="([^"]*)"', text)
     assert hrefs and all(h.startswith("#") for h in hrefs), [h for h in hrefs if not h.startswith("#")][:5]
     assert "@import" not in text and not re.search(r"url\((?!#)", text)
-    for fig_id in FIGURES:
-        assert f'<figure class="plot" id="{fig_id}"><svg' in text, fig_id
-    assert text.count("<svg") == len(FIGURES)
     # ids inside the inline SVGs do not collide between figures
     ids = re.findall(r'\sid="([^"]+)"', text)
     assert len(ids) == len(set(ids))
-    assert 'id="tuning-placeholder"' in text
+
+
+def test_report_is_self_contained(report: Path) -> None:
+    text = report.read_text(encoding="utf-8")
+    _assert_self_contained(text)
+    for fig_id in FIGURES:
+        assert f'<figure class="plot" id="{fig_id}"><svg' in text, fig_id
+    assert text.count("<svg") == len(FIGURES)
+    assert "No controller settings in this run" in text  # the verdict says why there is none
 
 
 def test_report_says_what_the_run_found(run, report: Path) -> None:
@@ -194,7 +227,94 @@ def test_report_renders_every_figure_in_chromium(report: Path, tmp_path: Path) -
     _assert_not_blank(shot)
 
 
-def test_report_with_tuning_and_search_history_renders_in_chromium(run, tmp_path: Path) -> None:
+def test_verdict_comes_first_and_the_header_names_the_model(run, tuned) -> None:
+    out, log, recording, config, ident = run
+    page, doc, _ = tuned
+    text = page.read_text(encoding="utf-8")
+    verdict = text.index('id="verdict"')
+    assert verdict < text.index("<figure") and verdict < text.index("<table")
+    ready = doc["verification"]["ready"]
+    head = re.search(r'<section class="verdict ([a-z-]+)" id="verdict"><h2>([^<]*)</h2>', text)
+    assert head and head.group(1) == ("ready" if ready else "not-ready")
+    assert head.group(2).startswith("Ready" if ready else "Not ready")
+    for reason in doc["verification"]["reasons"]:
+        assert html.escape(reason) in text[verdict:text.index("<figure")]
+    # the tiles, before the first figure: ε with its interval, J_m, J_l, K, the modes, the margins
+    tiles = dict(re.findall(r'<div class="card" id="(tile-[a-z-]+)"><b>([^<]*)</b>', text))
+    lo, hi = (math.degrees(x) for x in ident.epsilon_interval_rad)
+    assert tiles["tile-epsilon"] == f"{ident.epsilon_deg:.4f}°" and f"[{lo:.4f}°, {hi:.4f}°]" in text
+    for key, value in (("tile-jm", ident.parameters.J_m), ("tile-jl", ident.parameters.J_l),
+                       ("tile-k", ident.parameters.K)):
+        mantissa = float(re.match(r"[0-9.]+", tiles[key]).group(0))
+        exponent = re.search(r"10([⁻⁰¹²³⁴⁵⁶⁷⁸⁹]+)", tiles[key])
+        if exponent:
+            mantissa *= 10.0 ** int(exponent.group(1).translate(str.maketrans("⁻⁰¹²³⁴⁵⁶⁷⁸⁹", "-0123456789")))
+        assert mantissa == pytest.approx(value, rel=1e-3), key
+    assert tiles["tile-resonance"] == f"{ident.modes.f_resonance_hz:.2f} Hz"
+    assert tiles["tile-antiresonance"] == f"{ident.modes.f_antiresonance_hz:.2f} Hz"
+    assert text.index('id="tile-gm"') < text.index("<figure")
+
+
+def _lookup(doc: dict, key: str) -> float:
+    node = doc
+    for part in key.split("."):
+        node = node[part]
+    return node
+
+
+def test_every_margin_on_the_page_is_controller_json(run, tuned) -> None:
+    """One loop model: the tiles, the margins table and the open-loop plot show controller.json's margins."""
+    ident = run[4]
+    page, doc, tuning = tuned
+    text = page.read_text(encoding="utf-8")
+    tiles = dict(re.findall(r'<div class="card" id="(tile-[a-z-]+)"><b>([^<]*)</b>', text))
+    assert tiles["tile-pm"] == f"{doc['margins']['phase_margin_deg']:.1f}°"
+    assert tiles["tile-gm"] == f"{doc['margins']['gain_margin_db']:.1f} dB"
+    cells = re.findall(r'<td class="num margin[^"]*" data-key="([^"]+)">([^<]*)</td>', text)
+    keys = {k for k, _ in cells}
+    assert {"margins.phase_margin_deg", "margins.gain_margin_db", "position_loop.margins.phase_margin_deg"} <= keys
+    if doc["margins"]["gap"] is not None:
+        assert "margins.gap.phase_margin_deg" in keys
+    for key, shown in cells:
+        unit = "°" if key.endswith("_deg") else " dB"
+        assert shown == f"{_lookup(doc, key):.1f}{unit}", key
+    # the open loop drawn is the design's: its legend names the same margins at the same frequencies
+    fig = text[text.index('id="fig-openloop"'):]
+    fig = fig[:fig.index("</figure>")]
+    drawn_pm = [float(x) for x in re.findall(r"PM (-?[0-9.]+)°", fig)]
+    drawn_gm = [float(x) for x in re.findall(r"GM (-?[0-9.]+) dB", fig)]
+    expected_pm = [round(doc["margins"]["phase_margin_deg"], 1)]
+    expected_gm = [round(doc["margins"]["gain_margin_db"], 1)]
+    if doc["margins"]["gap"] is not None:
+        expected_pm.append(round(doc["margins"]["gap"]["phase_margin_deg"], 1))
+        expected_gm.append(round(doc["margins"]["gap"]["gain_margin_db"], 1))
+    assert drawn_pm == expected_pm and drawn_gm == expected_gm
+    # ... and the loop drawn crosses 0 dB where controller.json says, with that phase margin
+    from commission.tuning import open_loop
+
+    fc = doc["margins"]["crossover_hz"]
+    L = open_loop(tuning.settings, ident.parameters, np.array([fc]))
+    assert abs(L[0]) == pytest.approx(1.0, abs=1e-6)
+    assert 180.0 - abs(math.degrees(np.angle(L[0]))) == pytest.approx(doc["margins"]["phase_margin_deg"], abs=1e-6)
+
+
+def test_report_with_tuning_renders_in_chromium(tuned, tmp_path: Path) -> None:
+    page, doc, _ = tuned
+    text = page.read_text(encoding="utf-8")
+    _assert_self_contained(text)
+    # the verification as tables with units, no raw Python values
+    ver = text[text.index('id="verification"'):text.index('id="model"')]
+    assert "overshoot [%]" in ver and "settling time [ms]" in ver and "load error [mrad]" in ver
+    assert "None" not in ver and "True" not in ver and "False" not in ver
+    assert "velocity_step" not in ver and "proposed settings" in ver
+    # the --measure-backlash result
+    assert 'id="backlash-check"' in text and "0.4100" in text
+    result, shot = _render(page, tmp_path)
+    _assert_figures(result, FIGURES + TUNING_FIGURES)
+    _assert_not_blank(shot)
+
+
+def test_report_shows_the_search_history(run, tmp_path: Path) -> None:
     out, log, recording, config, ident = run
     history = [{"epsilon_deg": e, "phi": p, "omega_scale": 1.0, "cost_nm": 1e-3 + abs(e - 0.4) * (1 + p)}
                for p in (0.2, 0.5, 0.8) for e in np.linspace(0.0, 1.0, 21)]
@@ -202,14 +322,8 @@ def test_report_with_tuning_and_search_history_renders_in_chromium(run, tmp_path
               for s in ident.stages]
     ident_h = dataclasses.replace(ident, stages=stages)
     assert len(search_history(ident_h)) == len(history)
-    page = write_report(tmp_path / "tuned.html", recording, ident_h, config=config, source_file=log, tuning=TUNING)
-    text = page.read_text(encoding="utf-8")
-    assert "tuning-placeholder" not in text and "phase margin" in text and "gain margin" in text
-    assert "phase_margin_deg" in text and "without compensation" in text
-    assert "63 evaluations" in text
-    result, shot = _render(page, tmp_path)
-    _assert_figures(result, FIGURES + TUNING_FIGURES)
-    _assert_not_blank(shot)
+    text = render_report(recording, ident_h, config=config, source_file=log)
+    assert "63 evaluations" in text and "φ 0.5" in text
 
 
 def test_report_without_identification(run, tmp_path: Path) -> None:
@@ -218,12 +332,31 @@ def test_report_without_identification(run, tmp_path: Path) -> None:
     text = render_report(recording, None, config=config, source_file=log)
     assert 'id="fig-bode"' in text and 'id="fig-time"' in text and 'id="fig-zoom"' in text
     assert 'id="fig-search"' not in text and "No identification" in text
+    assert text.index('id="verdict"') < text.index("<figure")
 
 
-def test_true_plant_only_for_simulated_drives(run) -> None:
+def test_the_plant_comes_from_the_run_not_from_the_drive_name(run) -> None:
+    """A --sim run stores its plant in the log; a recording without it (a real drive, whatever its
+    name says) has none."""
     out, log, recording, config, ident = run
-    tm, eps = true_plant_from_config(config, recording)
-    assert math.isclose(math.degrees(eps), 0.4) and tm.K > 0
-    real = recording.replace(drive=dataclasses.replace(recording.drive, backend="canopen", product="Σ-7", vendor="YASKAWA"))
-    assert true_plant_from_config(config, real) is None
-    assert true_plant_from_config(None, recording) is None
+    plant = simulated_plant(recording, config)
+    assert plant == PlantParameters.model_validate(config["sim"] or {})
+    assert "simulated_plant" in recording.metadata
+    named = recording.replace(
+        drive=dataclasses.replace(recording.drive, backend="canopen", product="simulated drive", vendor="SIM"),
+        metadata={k: v for k, v in recording.metadata.items() if k != "simulated_plant"})
+    assert simulated_plant(named, config) is None
+    assert "true plant (simulator)" not in render_report(named, ident, config=config)
+
+
+def test_measure_backlash_result_is_in_the_report(tmp_path: Path) -> None:
+    """`commission --sim --measure-backlash`: the reversal check's ε is in report.html, as measured."""
+    out = tmp_path / "run"
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(["--sim", "--measure-backlash", "--no-tune", "--out", str(out), "--json"]) == 0
+    check = json.loads(buf.getvalue())["backlash_check"]
+    text = (out / REPORT_NAME).read_text(encoding="utf-8")
+    section = text[text.index('id="backlash-check"'):text.index('id="model"')]
+    assert f"{check['epsilon_deg']:.4f}" in section and check["log"] in section
+    assert text.count('id="backlash-check"') == 1

@@ -249,6 +249,7 @@ def _replay(args: argparse.Namespace, config: Config, term: _Terminal, identify:
     identification = None
     tuning = None
     recorded = _recorded_config(args.replay, config)
+    plant = _simulated_plant(recorded, recording)
     if identify is not None:
         from .sequencer import tune_and_export, write_result
 
@@ -257,13 +258,13 @@ def _replay(args: argparse.Namespace, config: Config, term: _Terminal, identify:
         result["files"].append(str(write_result(out_dir, identification, str(args.replay))))
         if not args.no_tune:
             tuning = tune_and_export(out_dir, identification, _tuning_options(config, args), _description(args),
-                                     _simulated_plant(recorded, recording))
+                                     plant)
             result["controller"] = tuning.controller
             result["files"] += [str(f) for f in tuning.files]
     from .sequencer import write_run_report
 
     report = write_run_report(out_dir, recording, identification, recorded,
-                              str(args.replay), [Path(f) for f in result["files"]], tuning)
+                              str(args.replay), [Path(f) for f in result["files"]], tuning, true_plant=plant)
     if report is not None:
         result["files"].append(str(report))
     term.summary(f"replay of {args.replay}", _rows(result))
@@ -344,6 +345,14 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
             "reversals": len(reversals.reversals),
             "log": str(check_log),
         }
+        from .config import config_to_dict
+        from .sequencer import write_run_report
+
+        # the check runs after the report was written: draw it again with the check in it
+        write_run_report(outcome.out_dir, outcome.recording, outcome.identification, config_to_dict(config),
+                         str(outcome.log_path), [*(f for f in outcome.files if f.name != "report.html"), check_log],
+                         outcome.tuning,
+                         true_plant=true_plant, backlash_check=result["backlash_check"])
     result["source"] = drive.info.backend
     result["recording"] = _recording_summary(outcome.recording)
     result["envelope"] = {
@@ -380,14 +389,11 @@ def _description(args: argparse.Namespace) -> Any | None:
 
 
 def _simulated_plant(config: dict[str, Any], recording: Recording) -> Any | None:
-    """The simulator's plant when the replayed run came from the simulated drive, else None."""
-    from .report import true_plant_from_config
+    """The simulator's plant when the replayed run came from the simulated drive (the log says
+    so), else None."""
+    from .sequencer import simulated_plant
 
-    if true_plant_from_config(config, recording) is None:
-        return None
-    from .drive.sim import plant_from_options
-
-    return plant_from_options(dict(config["sim"]))
+    return simulated_plant(recording, config)
 
 
 def _confirm(term: _Terminal) -> Any:

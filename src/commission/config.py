@@ -10,7 +10,7 @@ the default below (which is the paper's experiment with the corrected chirp)::
     backlash_check: {amplitude_rad_s, frequency_hz, duration_s}
     identification: {...}          options of the identifier (commission.ident)
     tuning:      {...}             options of the controller design (commission.tuning)
-    sim:         {...}             the simulated plant (sim_drive.plant.PlantParameters)
+    sim:         {...}             the simulated plant (commission.plant.PlantParameters)
 
 Unknown keys are errors, so a typo never silently falls back to a default.
 """
@@ -110,7 +110,7 @@ class Config(_Section):
     tuning: TuningOptions = TuningOptions()
     sim: dict[str, Any] = Field(
         default_factory=dict,
-        description="simulated plant parameters (sim_drive.plant.PlantParameters), used with --sim",
+        description="simulated plant parameters (commission.plant.PlantParameters), used with --sim",
     )
 
     @model_validator(mode="after")

@@ -26,6 +26,7 @@ from .excitation import Waveform, chirp, velocity_reversal
 from .exceptions import Aborted, CommissionError, DriveFault, LogFormatError, OutputError
 from .mcaplog import append_result, write_recording
 from .ident.reversal import ReversalCheck, backlash_from_reversals
+from .plant import PlantParameters
 from .recording import Recording
 
 #: progress(label, done, total)
@@ -40,6 +41,27 @@ REPORT_NAME = "report.html"
 #: Every n-th sample also goes to the log's /samples topic, for Foxglove's Plot panel
 #: (1 kHz at the 8 kHz trace rate; the exact record stays in the sample blocks).
 PLOT_EVERY = 8
+#: Recording metadata of a run on the simulated drive: its plant (PlantParameters as JSON), so
+#: that a replay of the log verifies on the same machine.
+SIMULATED_PLANT = "simulated_plant"
+
+
+def simulated_plant(recording: Recording, config: dict[str, Any] | None = None) -> PlantParameters | None:
+    """The plant a recording was made on, when the run was on the simulated drive; else None.
+
+    The run says so in the recording's metadata (:data:`SIMULATED_PLANT`). Logs written before
+    it did: a drive whose backend is ``sim``, with the config's ``sim`` section as its plant.
+    """
+    stored = recording.metadata.get(SIMULATED_PLANT)
+    try:
+        if stored:
+            return PlantParameters.model_validate_json(stored)
+        if recording.drive.backend == "sim" and config is not None and isinstance(config.get("sim"), dict):
+            return PlantParameters.model_validate(config["sim"])
+    except ValueError as err:  # pydantic's ValidationError is a ValueError
+        warnings.warn(f"the log's simulated plant is not valid, verifying on the identified model: {err}",
+                      stacklevel=2)
+    return None
 
 
 @dataclass(frozen=True)
@@ -56,12 +78,13 @@ class TuningOutcome:
 
 
 def tune_and_export(out_dir: Path, identification: Any, options: Any, description: Any | None,
-                    true_plant: Any | None = None) -> TuningOutcome:
+                    true_plant: PlantParameters | None = None) -> TuningOutcome:
     """Design the controller from the identification, verify it in closed loop and write
     ``controller.json`` (and ``controller-<drive>.yaml`` with a drive description).
 
-    :param true_plant: the simulator's PlantParameters on simulated runs: the settings are then
-        verified on the true machine; otherwise on the identified model with its backlash.
+    :param true_plant: the simulator's plant on simulated runs (the caller knows it ran one): the
+        settings are then verified on the true machine; otherwise on the identified model with its
+        backlash.
     """
     from .tuning import controller_json, design, verify, write_controller_files
 
@@ -109,8 +132,13 @@ def add_identification_to_log(log_path: Path, identification: Any) -> None:
 
 def write_run_report(out_dir: Path, recording: Recording, identification: Any | None,
                      config: dict[str, Any], source_file: str, files: list[Path],
-                     tuning: TuningOutcome | None = None) -> Path | None:
-    """Write ``DIR/report.html`` (Bode and time plots) and return its path.
+                     tuning: TuningOutcome | None = None, *, true_plant: PlantParameters | None = None,
+                     backlash_check: dict[str, Any] | None = None) -> Path | None:
+    """Write ``DIR/report.html`` (verdict, model, tuning, verification, plots) and return its path.
+
+    :param true_plant: the simulator's plant when the run (or the replayed log) was on the
+        simulated drive: drawn beside the identified model.
+    :param backlash_check: ``--measure-backlash``'s result (result.json's ``backlash_check``).
 
     The report is a view of results already written: if drawing it fails, the run is
     not failed for it — a warning says why and None is returned.
@@ -120,7 +148,8 @@ def write_run_report(out_dir: Path, recording: Recording, identification: Any | 
     path = Path(out_dir) / REPORT_NAME
     try:
         return write_report(path, recording, identification, config=config, source_file=source_file,
-                            files=[*files, path], tuning=None if tuning is None else tuning.controller)
+                            files=[*files, path], tuning=tuning, true_plant=true_plant,
+                            backlash_check=backlash_check)
     except OSError as err:
         raise OutputError(f"cannot write {path}: {err.strerror or err}") from err
     except Exception as err:  # noqa: BLE001 - a plotting failure must not cost the commissioning result
@@ -147,7 +176,8 @@ class Sequencer:
     :param progress: called during the excitation with ("excitation", samples done, total).
     :param identify: the identifier seam; None stops after the log.
     :param tune: design and verify controller settings after the identification.
-    :param true_plant: the simulator's plant, to verify the settings on the true machine.
+    :param true_plant: the simulator's plant (a ``--sim`` run), to verify the settings on the
+        true machine; it is also stored in the log's recording metadata (:data:`SIMULATED_PLANT`).
     """
 
     def __init__(
@@ -159,7 +189,7 @@ class Sequencer:
         progress: Progress | None = None,
         identify: Identifier | None = None,
         tune: bool = True,
-        true_plant: Any | None = None,
+        true_plant: PlantParameters | None = None,
     ) -> None:
         self.config = config
         self.drive = drive
@@ -200,7 +230,7 @@ class Sequencer:
                                          getattr(self.drive, "description", None), self.true_plant)
                 files += tuning.files
         report = write_run_report(self.out_dir, recording, identification, config_to_dict(self.config),
-                                  str(log_path), files, tuning)
+                                  str(log_path), files, tuning, true_plant=self.true_plant)
         if report is not None:
             files.append(report)
         return RunOutcome(self.out_dir, log_path, recording, waveform, envelope, identification, files, tuning)
@@ -249,10 +279,14 @@ class Sequencer:
         if problem:
             raise DriveError(f"the experiment ended but the drive did not disable: {problem}")
         recording = recording.replace(
-            metadata={**recording.metadata, "status": "complete", "excitation": waveform.description}
+            metadata={**recording.metadata, **self._plant_metadata(), "status": "complete",
+                      "excitation": waveform.description}
         )
         self._write_log(log_path, recording)
         return recording
+
+    def _plant_metadata(self) -> dict[str, str]:
+        return {} if self.true_plant is None else {SIMULATED_PLANT: self.true_plant.model_dump_json()}
 
     def _write_log(self, log_path: Path, recording: Recording) -> None:
         try:
@@ -268,7 +302,8 @@ class Sequencer:
         if partial is None:
             return None
         reason = str(err) or type(err).__name__
-        partial = partial.replace(metadata={**partial.metadata, "status": f"aborted: {reason}"})
+        partial = partial.replace(metadata={**partial.metadata, **self._plant_metadata(),
+                                            "status": f"aborted: {reason}"})
         try:
             self._write_log(log_path, partial)
         except OutputError:

@@ -1,14 +1,14 @@
 """Closed-loop simulation at the drive's clock: the controller of :mod:`.design` around the
-simulated drive's two-mass + dead-zone plant, one compiled loop.
+two-mass + dead-zone plant of :mod:`commission.plant`, one compiled loop.
 
-The plant is ``sim_drive.plant``'s own per-sample integrator (:func:`sim_drive.plant.integrate_sample`:
-RK4 sub-steps, contact and separation located inside the step, Coulomb friction, the
-current-loop lag in closed form), so the verification runs on exactly the physics of the
-simulated drive; only the controller is written here, inside the same compiled loop.
+The plant is advanced by :func:`commission.plant.advance_sample` (RK4 sub-steps, contact and
+separation located inside the step, Coulomb friction, the current-loop lag in closed form),
+the integrator the simulated drive runs too, so the verification runs on exactly the physics
+of ``--sim``; only the controller is written here, inside the same compiled loop.
 ``tests/test_tuning.py`` checks the loop against ``Plant.run_velocity`` with a PI controller
 (the drive's velocity mode).
 
-Sample timing (the drive's, as in ``sim_drive.plant``): at tick k the encoders
+Sample timing (the drive's, as in :mod:`commission.plant`): at tick k the encoders
 are latched and quantised, the velocity is the backward difference of the
 quantised positions, the controller computes u[k], and u[k] is held over
 [k·Ts, (k+1)·Ts).
@@ -37,7 +37,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from sim_drive.plant import integrate_sample
+from ..plant import PlantKernel, advance_sample, initial_state, load_position, motor_position, quantise, twist
 
 __all__ = ["MAX_NOTCHES", "simulate_closed_loop"]
 
@@ -49,16 +49,11 @@ MAX_NOTCHES = 2
  _ALPHA_R) = range(13)
 _NOTCH0 = 13  # then 5 coefficients per notch: b0, b1, b2, a1, a2
 _N_CTRL = _NOTCH0 + 5 * MAX_NOTCHES
-# the plant's parameter vector (sim_drive.plant's layout): the entries the controller reads
-_P_EPS, _P_WC, _P_QM, _P_QL = 6, 10, 11, 12
-_STATE_SIZE = 9  # sim_drive.plant's loop memory; [0..5] = x_m, v_m, x_s, v_l, τ, mode
-_TC, _MODE = 4, 5
 
 
 @njit(cache=True)
 def _run(r: NDArray[np.float64], v_ref: NDArray[np.float64], a_ref: NDArray[np.float64],
-         p: NDArray[np.float64], c: NDArray[np.float64], n_sub: int, Ts: float,
-         out: NDArray[np.float64]) -> None:
+         p: PlantKernel, c: NDArray[np.float64], out: NDArray[np.float64]) -> None:
     """The closed loop over len(r) samples from rest (twist 0, centre of the gap).
 
     Rows of out: measured motor position, measured motor velocity, true load position,
@@ -66,11 +61,10 @@ def _run(r: NDArray[np.float64], v_ref: NDArray[np.float64], a_ref: NDArray[np.f
     filtered position reference r_f (position mode; 0 in velocity mode).
     """
     n = r.shape[0]
-    s = np.zeros(_STATE_SIZE)
-    s[_MODE] = 0.0 if p[_P_EPS] > 0.0 else 1.0
-    lag = p[_P_WC] > 0.0
-    q_m = p[_P_QM]
-    q_l = p[_P_QL]
+    s = initial_state(p)
+    Ts = p.sample_time_s
+    q_m = p.encoder_step_motor_rad
+    q_l = p.encoder_step_load_rad
     integ = 0.0
     y_f = 0.0
     n_notch = int(c[_NNOTCH])
@@ -89,9 +83,9 @@ def _run(r: NDArray[np.float64], v_ref: NDArray[np.float64], a_ref: NDArray[np.f
     n_delay = int(c[_DELAY])
     line = np.zeros(n_delay + 1)  # computation delay: u[k] acts n_delay samples later
     for k in range(n):
-        pos_m = np.rint(s[0] / q_m) * q_m
-        x_l = s[0] - s[2]
-        pos_l = np.rint(x_l / q_l) * q_l
+        pos_m = quantise(motor_position(s), q_m)
+        x_l = load_position(s)
+        pos_l = quantise(x_l, q_l)
         vel_m = (pos_m - pos_prev) / Ts
         vel_l = (pos_l - posl_prev) / Ts
         pos_prev = pos_m
@@ -135,28 +129,25 @@ def _run(r: NDArray[np.float64], v_ref: NDArray[np.float64], a_ref: NDArray[np.f
         out[2, k] = x_l
         out[3, k] = vel_l
         out[4, k] = u
-        out[5, k] = s[2]
+        out[5, k] = twist(s)
         out[6, k] = offset
         out[7, k] = r_f if pos_mode else 0.0
         if n_delay > 0:
             line[k % (n_delay + 1)] = u
             u = line[(k + 1) % (n_delay + 1)]
-        dev = s[_TC] - u if lag else 0.0  # current loop: torque u + dev·exp(−ω_c·t) over the sample
-        dev = integrate_sample(s, u, dev, n_sub, Ts, p, True)
-        s[_TC] = u + dev
+        advance_sample(s, u, 0.0, p)
 
 
-def simulate_closed_loop(plant: NDArray[np.float64], controller: NDArray[np.float64], n_sub: int, Ts: float,
+def simulate_closed_loop(plant: PlantKernel, controller: NDArray[np.float64],
                          position_ref: NDArray[np.float64], velocity_ref: NDArray[np.float64],
                          accel_ref: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Run the compiled loop on a plant given as ``sim_drive.plant.Plant.kernel_parameters``
-    (plant, n_sub); returns out of shape (8, N) (rows: see ``_run``)."""
+    """Run the compiled loop on ``plant`` (:attr:`commission.plant.Plant.kernel`, whose sample
+    time is the loop's); returns out of shape (8, N) (rows: see ``_run``)."""
     r = np.ascontiguousarray(position_ref, dtype=np.float64)
     v = np.ascontiguousarray(velocity_ref, dtype=np.float64)
     a = np.ascontiguousarray(accel_ref, dtype=np.float64)
     if not (r.shape == v.shape == a.shape and r.ndim == 1):
         raise ValueError("position, velocity and acceleration references must have the same shape (N,)")
     out = np.empty((8, r.shape[0]))
-    _run(r, v, a, np.ascontiguousarray(plant, dtype=np.float64),
-         np.ascontiguousarray(controller, dtype=np.float64), int(n_sub), float(Ts), out)
+    _run(r, v, a, plant, np.ascontiguousarray(controller, dtype=np.float64), out)
     return out

@@ -26,7 +26,7 @@ from typing import Any
 import yaml
 
 from ..exceptions import DriveError, OutputError
-from .design import ControllerSettings, TuningError
+from .settings import ControllerSettings, TuningError
 
 __all__ = [
     "PARAMETER_TOPIC", "ApplyReport", "ParameterValue", "apply", "controller_json", "drive_parameters",
