@@ -504,13 +504,8 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
         fit = ident.get("fit")
         if fit is not None:
             rows.append(("model fit", f"{100 * fit['residual_ratio']:.3g} % of the torque unexplained"
-                         + (f", {100 * fit['dropped_fraction']:.1f} % of the record dropped"
-                            + (f" ({100 * fit['residual_ratio_all_samples']:.2g} % over all of it)"
-                               if "residual_ratio_all_samples" in fit else "")
-                            if fit["dropped_fraction"] else "")
                          + (" (white torque noise)" if fit.get("noise_limited") else "")
-                         + ("  APPROXIMATE: the model does not reproduce this axis (notes: -v)"
-                            if fit["approximate"] else "")))
+                         + ("  APPROXIMATE: " + "; ".join(fit.get("reasons", [])) if fit["approximate"] else "")))
     ctl = result.get("controller")
     if ctl is not None:
         vl, m, ver = ctl["velocity_loop"], ctl["margins"], ctl["verification"]

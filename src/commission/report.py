@@ -85,7 +85,7 @@ def search_history(identification: Any) -> list[dict[str, Any]]:
 
     Recognised (the identifier decides what it keeps; absent → empty list):
 
-    * stage ``search`` (hybrid): ``detail["history"]`` = list of
+    * stage ``scan`` (hybrid): ``detail["history"]`` = list of
       ``{"epsilon_deg", "cost_nm", "phi"?, "omega_scale"?}`` in evaluation order;
     * stage ``paper``: ``detail["searches"]`` = list (one per pass) of
       ``{"history": [[epsilon_deg, loss], ...] or [{"epsilon_deg", "loss"}], "method"?, …}``.
@@ -95,7 +95,7 @@ def search_history(identification: Any) -> list[dict[str, Any]]:
     out: list[dict[str, Any]] = []
     for stage in getattr(identification, "stages", []) or []:
         detail = getattr(stage, "detail", {}) or {}
-        if stage.name == "search" and isinstance(detail.get("history"), Sequence):
+        if stage.name == "scan" and isinstance(detail.get("history"), Sequence):
             for h in detail["history"]:
                 if isinstance(h, Mapping) and "epsilon_deg" in h:
                     out.append({"pass": 0, "epsilon_deg": float(h["epsilon_deg"]),
@@ -139,11 +139,17 @@ def _sampled(resp: NDArray[np.complex128], f: NDArray[np.float64], fs: float, de
     return resp * np.exp(-2j * np.pi * f * delay_s) * np.sinc(f / fs) ** 2
 
 
-def _options(config: Mapping[str, Any] | None) -> tuple[tuple[float, float], float, tuple[float, float]]:
-    ident = (config or {}).get("identification") or {}
-    band = tuple(ident.get("band_hz", (0.1, 400.0)))
-    res = float(ident.get("resolution_hz", 0.1))
-    eb = tuple(ident.get("epsilon_bounds_deg", (0.01, 1.0)))
+def _options(config: Mapping[str, Any] | None, identification: Any = None,
+             n_samples: int = 0, fs: float = 0.0) -> tuple[tuple[float, float], float, tuple[float, float]]:
+    """FRD band and resolution (the identification's own when it has them) and the ε range."""
+    opts = (config or {}).get("identification") or {}
+    band = tuple(opts.get("band_hz") or (0.1, 400.0))
+    res = max(float(opts.get("resolution_hz") or 0.1), fs / n_samples if n_samples else 0.0)
+    for stage in getattr(identification, "stages", []) or []:
+        if stage.name == "start" and "band_hz" in stage.detail:
+            band = tuple(stage.detail["band_hz"])
+            res = float(stage.detail.get("resolution_hz", res))
+    eb = tuple(opts.get("epsilon_bounds_deg") or (0.01, 1.0))
     return (float(band[0]), float(band[1])), res, (float(eb[0]), float(eb[1]))
 
 
@@ -154,7 +160,7 @@ def _curves(rec: Recording, ident: Any, config: Mapping[str, Any] | None,
     from .ident.frd import estimate_frd
 
     fs = rec.sample_rate_hz
-    band, res, eb = _options(config)
+    band, res, eb = _options(config, ident, len(rec), fs)
     band = (band[0], min(band[1], 0.45 * fs))
     warnings: list[str] = []
     u, v = rec.torque_ref, rec.motor_velocity
@@ -366,7 +372,7 @@ def _fig_search(ident: Any, c: _Curves, history: list[dict[str, Any]]) -> str:
     else:
         best: list[Mapping[str, Any]] = []
         for s in ident.stages:
-            if s.name == "search" and isinstance(s.detail.get("best"), Sequence):
+            if s.name == "scan" and isinstance(s.detail.get("best"), Sequence):
                 best = [b for b in s.detail["best"] if isinstance(b, Mapping)]
         if best:
             ax_h = fig.panel(220, y_scale="log", x_label="ε [deg]", y_label="torque residual RMS [N·m]",
@@ -605,9 +611,10 @@ def _tool_version() -> str:
 def _verdict(ident: Any, tuning: TuningOutcome | None) -> str:
     """The verdict box: ready / not ready and every reason (controller.json's), or why there is none."""
     notes: list[str] = []
-    if ident is not None and any("approximate" in n.lower() for n in getattr(ident, "notes", [])):
-        notes.append("The identification says its result is approximate: read its notes under "
-                     "'Identified model' before trusting the settings.")
+    quality = getattr(ident, "fit", None)
+    if quality is not None and quality.approximate:
+        notes.append("The identification says its result is approximate: " + "; ".join(quality.reasons)
+                     + ". Read its notes under 'Identified model' before trusting the settings.")
     if tuning is None:
         why = ("No identification in this run (--no-identify, or it failed): measured data only."
                if ident is None else "No controller settings in this run (--no-tune): the identified model only.")

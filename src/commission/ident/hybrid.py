@@ -234,8 +234,8 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
                      f"configured range (up to {opt.epsilon_bounds_deg[1]:g}°)")
     st.done("scan", evaluations=sc.evaluations, extended_to_deg=sc.extended_to_deg, lag_s=lag0,
             friction_rescan=friction_rescan, load_encoder_start=enc is not None,
-            cells=[{"epsilon_deg": math.degrees(c.epsilon_rad), "phi": c.phi, "cost_nm": c.cost_nm}
-                   for c in sc.cells])
+            history=[{"epsilon_deg": math.degrees(c.epsilon_rad), "phi": c.phi, "cost_nm": c.cost_nm}
+                     for c in (sc.history or sc.cells)])
 
     st.start("fit", 0.35)
     terms = ModelTerms(coulomb_motor=candidates.coulomb_motor, coulomb_load=friction_rescan is not None,

@@ -77,8 +77,10 @@ class Scan:
 
     cells: tuple[ScanCell, ...]
     """Every evaluated cell, lowest cost first."""
-    extended_to_deg: float | None
+    extended_to_deg: float | None = None
     """Upper end of the ε grid when it was extended beyond the configured range [deg]."""
+    history: tuple[ScanCell, ...] = ()
+    """Every evaluated cell in the order evaluated."""
 
     @property
     def best(self) -> ScanCell:
@@ -166,4 +168,4 @@ def scan(problem: ResidualProblem, start: TwoMassParameters, bounds_deg: tuple[f
         eps = np.concatenate((eps, more))
         cells += cells_for(more)
         hi = extended = 2.0 * hi
-    return Scan(tuple(sorted(cells, key=lambda c: (c.cost_nm, c.epsilon_rad, c.phi))), extended)
+    return Scan(tuple(sorted(cells, key=lambda c: (c.cost_nm, c.epsilon_rad, c.phi))), extended, tuple(cells))
