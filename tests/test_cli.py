@@ -13,10 +13,8 @@ from commission.mcaplog import read_recording
 
 
 @pytest.fixture(scope="module")
-def sim_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("sim")
-    assert main(["--sim", "--out", str(out), "--json"]) == 0
-    return out
+def sim_run(default_sim_run):
+    return default_sim_run.out
 
 
 def test_sim_run_writes_the_log(sim_run):
@@ -45,18 +43,6 @@ def test_sim_run_writes_result_json_with_the_documented_keys(sim_run):
     assert doc["source"] == {"file": str(sim_run / "run.mcap"), "sample_rate_hz": 8000.0, "samples": 80000}
     assert abs(doc["backlash"]["epsilon_deg"] - 0.40) < 0.01  # the default plant's backlash
     assert doc["fit"]["residual_ratio"] < 0.002 and doc["fit"]["approximate"] is False
-
-
-def test_replay_gives_the_live_result(sim_run, tmp_path, capsys):
-    capsys.readouterr()
-    assert main(["--replay", str(sim_run / "run.mcap"), "--out", str(tmp_path), "--json"]) == 0
-    doc = json.loads(capsys.readouterr().out)
-    assert doc["recording"]["samples"] == 80_000
-    assert doc["recording"]["signals"][:3] == ["torque_ref", "motor_position", "motor_velocity"]
-    live = json.loads((sim_run / "result.json").read_text())
-    replay = json.loads((tmp_path / "result.json").read_text())
-    for section in ("backlash", "two_mass", "modes", "transfer_function", "iterations"):
-        assert replay[section] == live[section], section
 
 
 def test_replay_csv(sim_run, tmp_path, capsys):
@@ -181,24 +167,38 @@ def test_apply_is_refused_before_the_axis_moves_when_the_drive_has_no_parameter_
     assert not (tmp_path / "o" / "run.mcap").exists()
 
 
-def test_apply_then_restore_over_canopen(tmp_path, capsys):
-    """--apply writes the verified settings (old values logged in run.mcap), --restore-from puts them back."""
-    from commission.mcaplog import read_results
+# -- conventions: results on stdout, diagnostics on stderr, a last "next:" line -------------------
+def test_options_are_not_abbreviable(capsys):
+    """`--pres soft` is a typo, not --preset soft: refused before anything runs."""
+    with pytest.raises(SystemExit) as info:
+        main(["--sim", "--pres", "soft"])
+    assert info.value.code == 2 and "unrecognized arguments: --pres soft" in capsys.readouterr().err
 
-    capsys.readouterr()
-    run = tmp_path / "run"
-    assert main(["--sim", "--sim-link", "canopen", "--drive", "sim", "--apply", "--yes", "--json",
-                 "--out", str(run)]) == 0
-    doc = json.loads(capsys.readouterr().out)
-    assert doc["apply"]["applied"] and doc["controller"]["verification"]["ready"]
-    written = doc["apply"]["written"]
-    assert written["velocity_kp"] == pytest.approx(doc["controller"]["velocity_loop"]["gain"], rel=1e-6)
-    events = read_results(run / "run.mcap")["/parameters"]
-    old = {v["name"]: v["value"] for v in events[0]["values"]}
-    assert events[0]["event"] == "old_values" and old["velocity_kp"] == pytest.approx(0.12)
-    assert (run / "controller-sim.yaml").is_file()
-    assert main(["--sim", "--sim-link", "canopen", "--drive", "sim", "--restore-from", str(run / "run.mcap"),
-                 "--yes", "--json", "--out", str(tmp_path / "restore")]) == 0
-    doc = json.loads(capsys.readouterr().out)
-    assert doc["restore"]["applied"] and doc["restore"]["written"] == pytest.approx(old)
-    assert read_results(tmp_path / "restore" / "restore.mcap")["/parameters"][0]["event"] == "old_values"
+
+def test_summary_on_stdout_and_a_last_line_saying_what_next(quick_sim_run, tmp_path):
+    """As `commission --replay run.mcap > out.txt` is used: the summary and the next step land in the
+    file; the terminal (stderr) gets only diagnostics."""
+    proc = subprocess.run([sys.executable, "-m", "commission.cli", "--replay", str(quick_sim_run.out / "run.mcap"),
+                           "--config", "quick", "--out", str(tmp_path)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.strip().splitlines()
+    assert "backlash ε" in proc.stdout and "controller ready" in proc.stdout
+    assert "backlash ε" not in proc.stderr and "next:" not in proc.stderr
+    assert lines[-1] == (f"next: open the report at {tmp_path / 'report.html'}; the settings are ready: "
+                         "to write them, commission the axis itself with --apply")
+    assert sum(line.startswith("next:") for line in lines) == 1
+
+
+def test_a_first_run_says_that_it_compiles(tmp_path):
+    """With an empty numba cache the run says on stderr that it compiles (tens of seconds after an
+    install); the next run loads the cache and says nothing of it."""
+    import os
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
+    argv = [sys.executable, "-m", "commission.cli", "--sim", "--config", "quick", "--no-identify"]
+    first = subprocess.run([*argv, "--out", str(tmp_path / "a")], capture_output=True, text=True, env=env)
+    again = subprocess.run([*argv, "--out", str(tmp_path / "b")], capture_output=True, text=True, env=env)
+    assert first.returncode == again.returncode == 0, first.stderr + again.stderr
+    assert "compiling the numerical kernels" in first.stderr and "compiling" not in first.stdout
+    assert "compiling" not in again.stderr
+    assert any((tmp_path / "numba-cache").rglob("*.nbi"))  # the cache went where numba was told

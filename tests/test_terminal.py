@@ -33,11 +33,9 @@ def _run(argv: list[str]) -> tuple[int, str, str]:
 
 
 @pytest.fixture(scope="module")
-def live(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, str]:
-    out = tmp_path_factory.mktemp("live")
-    code, stdout, stderr = _run(["--sim", "--out", str(out), "--json"])
-    assert code == 0, stderr
-    return out, json.loads(stdout), stderr
+def live(default_sim_run) -> tuple[Path, dict, str]:
+    """`commission --sim --out DIR --json` (shared with the other command-line tests: conftest.py)."""
+    return default_sim_run.out, default_sim_run.doc, default_sim_run.stderr
 
 
 @pytest.fixture(scope="module")
@@ -88,16 +86,16 @@ def test_json_error_is_one_line_on_stderr_and_nothing_on_stdout(tmp_path: Path) 
 # -- summary ------------------------------------------------------------------------------------
 def test_summary_table_shows_model_modes_backlash_and_files(summary: tuple[dict, str, str]) -> None:
     doc, stdout, stderr = summary
-    assert stdout == ""  # the summary is for people: stderr, so that stdout stays clean
+    assert "backlash" not in stderr  # the summary is the result: stdout (`commission … > out.txt` keeps it)
     ident = doc["identification"]
     rows = {}
-    for line in stderr.splitlines():
+    for line in stdout.splitlines():
         cells = [c.strip() for c in re.split(r"[│|]", line) if c.strip()]
         if len(cells) == 2:
             rows.setdefault(cells[0], []).append(cells[1])
-    assert "replay of" in stderr
+    assert "replay of" in stdout
     for key in ("samples", "method", "backlash ε", "inertias", "shaft", "resonance", "anti-resonance", "file"):
-        assert key in rows, f"row {key!r} missing from the summary:\n{stderr}"
+        assert key in rows, f"row {key!r} missing from the summary:\n{stdout}"
     eps = ident["backlash"]["epsilon_deg"]
     lo, hi = ident["backlash"]["epsilon_interval_deg"]
     assert rows["backlash ε"][0].startswith(f"{eps:.4f}°") and f"[{lo:.4f}°, {hi:.4f}°]" in rows["backlash ε"][0]
@@ -108,9 +106,10 @@ def test_summary_table_shows_model_modes_backlash_and_files(summary: tuple[dict,
 
 def test_no_colours_and_no_progress_animation_when_not_a_tty(summary: tuple[dict, str, str],
                                                              live: tuple[Path, dict, str]) -> None:
-    _, _, stderr = summary
-    assert not ANSI.search(stderr), repr(ANSI.search(stderr))
-    assert "\r" not in stderr  # no live progress redraws into a log file
+    _, stdout, stderr = summary
+    for text in (stdout, stderr):
+        assert not ANSI.search(text), repr(ANSI.search(text))
+        assert "\r" not in text  # no live progress redraws into a log file
 
 
 def test_report_html_is_among_the_files(live: tuple[Path, dict, str]) -> None:
@@ -132,16 +131,16 @@ def test_verbose_adds_the_cause_of_an_error(tmp_path: Path) -> None:
 
 
 def test_verbose_shows_stages_iterations_and_notes(live: tuple[Path, dict, str], tmp_path: Path) -> None:
-    code, _, stderr = _run(["--replay", str(live[0] / "run.mcap"), "--out", str(tmp_path), "-v"])
+    code, stdout, _ = _run(["--replay", str(live[0] / "run.mcap"), "--out", str(tmp_path), "-v"])
     assert code == 0
     ident = live[1]["identification"]
     for stage in ident["stages"]:
-        assert f"stage {stage['name']}" in stderr
-    assert "iteration 0" in stderr and f"iteration {len(ident['iterations']) - 1}" in stderr
-    plain = " ".join(stderr.split())
+        assert f"stage {stage['name']}" in stdout
+    assert "iteration 0" in stdout and f"iteration {len(ident['iterations']) - 1}" in stdout
+    plain = " ".join(stdout.split())
     for note in ident["notes"]:
         assert " ".join(f"note: {note}".split()) in plain
-    _, _, quiet = _run(["--replay", str(live[0] / "run.mcap"), "--out", str(tmp_path / "q")])
+    _, quiet, _ = _run(["--replay", str(live[0] / "run.mcap"), "--out", str(tmp_path / "q")])
     assert "iteration 0" not in quiet
 
 

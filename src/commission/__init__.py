@@ -2,8 +2,12 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
-from .exceptions import CommissionError
-from .recording import DriveInfo, Recording
+from .jitcache import ensure_writable_cache
+
+ensure_writable_cache()  # before any module that compiles with numba is imported
+
+from .exceptions import CommissionError  # noqa: E402
+from .recording import DriveInfo, Recording  # noqa: E402
 
 try:
     __version__ = version("drive-commission")

@@ -1,16 +1,19 @@
 """`commission`: the command line. Thin: parse, load the config, call the sequencer.
 
-Every CommissionError ends as one line on stderr and a non-zero exit code; no
-traceback (``-v`` shows the cause chain).
+Results (the summary table and a last ``next:`` line saying what to do next) go to
+stdout; progress, diagnostics and warnings to stderr; with ``--json`` stdout carries one
+JSON document and nothing else. Every CommissionError ends as one line on stderr and a
+non-zero exit code; no traceback (``-v`` shows the cause chain).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from datetime import datetime
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -30,6 +33,7 @@ modes:
   commission --port /dev/ttyACM0 --interface slcan --drive NAME   CANopen through a serial-line CAN adapter
   commission --port /dev/ttyUSB0 --protocol modbus [--drive NAME]  Modbus RTU on the drive's service port
   commission --replay run.mcap --out D   identify again from a log (.mcap or .csv)
+  commission --warm-cache                compile the numerical kernels once (a first run does it otherwise)
 
 outputs (in --out DIR, default ./commissioning/<date-time>/):
   run.mcap       every sample sent and measured, the config and the drive's identity
@@ -39,6 +43,8 @@ outputs (in --out DIR, default ./commissioning/<date-time>/):
   controller-<drive>.yaml  the same through the drive's parameter map (with --drive / a drive description)
   report.html    self-contained report: Bode and time plots, the backlash search, metadata
   backlash-check.mcap   the velocity-reversal experiment (with --measure-backlash)
+
+The summary goes to stdout, progress and warnings to stderr; the last line says what to do next.
 
 exit codes: 0 ok, 1 other error, 2 config, 3 input file, 4 drive, 5 safety limit, 6 identification,
             7 output file, 130 interrupted
@@ -59,12 +65,16 @@ def build_parser() -> argparse.ArgumentParser:
         "identify the two-mass model and its gear backlash.",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
+        allow_abbrev=False,  # `--pres soft` is a typo, not --preset
     )
     src = p.add_argument_group("drive or input (choose one)")
     x = src.add_mutually_exclusive_group(required=True)
     x.add_argument("--sim", action="store_true", help="use the built-in simulated drive (plant from the config's 'sim' section)")
     x.add_argument("--port", metavar="PORT", help="drive connection: a CAN channel (can0) or a serial device (/dev/ttyUSB0)")
     x.add_argument("--replay", metavar="FILE", type=Path, help="no drive: read a recorded run (.mcap or .csv) and identify it")
+    x.add_argument("--warm-cache", action="store_true",
+                   help="compile the numerical kernels into numba's cache with a short simulated run, then exit "
+                   "(`make run` and the Docker image do this at install; otherwise the first run does it)")
     link = p.add_argument_group("link options (with --port)")
     link.add_argument("--interface", metavar="NAME", help="python-can interface for CAN ports (default: socketcan)")
     link.add_argument("--bitrate", metavar="BIT/S", type=int,
@@ -82,7 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="CANopen streamed: run even if the bus budget's usable band is below the configured f_end_hz",
     )
     run = p.add_argument_group("run")
-    run.add_argument("--config", metavar="FILE", type=Path, help="commissioning recipe (YAML); default: the paper's experiment (configs/default.yaml)")
+    run.add_argument("--config", metavar="FILE", type=Path,
+                     help="commissioning recipe: a YAML file, or the name of a shipped one (default, paper-literal, "
+                     "quick); default: the paper's experiment (configs/default.yaml)")
     run.add_argument("--out", metavar="DIR", type=Path, help="output folder (default: ./commissioning/<date-time>/)")
     run.add_argument(
         "--method", choices=["hybrid", "paper"],
@@ -158,19 +170,26 @@ def _recording_summary(rec: Recording) -> dict[str, Any]:
 
 
 class _Terminal:
-    """Progress bar and summary on a terminal (rich); silent in --json mode."""
+    """Results on stdout (``out``), progress and diagnostics on stderr (``console``), with rich;
+    silent in --json mode."""
 
     def __init__(self, quiet: bool, verbose: bool) -> None:
         from rich.console import Console
 
         self.quiet = quiet
         self.verbose = verbose
+        self.out = Console(quiet=quiet, highlight=False)
         self.console = Console(stderr=True, quiet=quiet, highlight=False)
         self._progress: Any = None
         self._tasks: dict[str, Any] = {}
 
     def say(self, text: str) -> None:
-        self.console.print(text)
+        """A diagnostic line on stderr (rich markup), never wrapped (a log keeps it on one line)."""
+        self.console.print(text, soft_wrap=True)
+
+    def result(self, text: str) -> None:
+        """A plain result line on stdout, never wrapped (a path stays whole)."""
+        self.out.print(text, markup=False, soft_wrap=True)
 
     def progress(self, label: str, done: int, total: int, detail: str = "") -> None:
         if self.quiet:
@@ -201,7 +220,7 @@ class _Terminal:
         table.add_column()
         for k, v in rows:
             table.add_row(k, v)
-        self.console.print(table)
+        self.out.print(table)
 
 
 def _identifier(config: Config, args: argparse.Namespace, term: _Terminal) -> Any:
@@ -212,7 +231,7 @@ def _identifier(config: Config, args: argparse.Namespace, term: _Terminal) -> An
 
     options = config.identification
     if args.method is not None:
-        options = options.model_copy(update={"method": args.method})
+        options = _override(options, method=args.method)
 
     def run(recording: Recording) -> Any:
         def progress(stage: str, fraction: float, info: dict[str, Any] | None = None) -> None:
@@ -287,6 +306,7 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     sim_plant = dict(config.sim)
     if args.seed is not None:
         sim_plant["seed"] = args.seed
+        config = config.model_copy(update={"sim": sim_plant})  # the log's config says which seed ran
     link_options = {k: v for k, v in (("bitrate", args.bitrate), ("node_id", args.node_id), ("drive", args.drive))
                     if v is not None}
     over_can = (args.sim and args.sim_link == "canopen") or (
@@ -345,6 +365,7 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
             "reversals": len(reversals.reversals),
             "log": str(check_log),
         }
+        _add_to_result_json(out_dir, "backlash_check", result["backlash_check"])
         from .config import config_to_dict
         from .sequencer import write_run_report
 
@@ -367,16 +388,37 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     result["files"] = [str(f) for f in outcome.files]
     if check is not None:
         result["files"].append(str(check[2]))
+        if str(out_dir / "result.json") not in result["files"]:  # --no-identify: the check alone
+            result["files"].append(str(out_dir / "result.json"))
     term.summary("commissioning run", _rows(result))
     _details(term, result)
     return result
 
 
+def _add_to_result_json(out_dir: Path, key: str, value: Any) -> None:
+    """Put one more top-level section into DIR/result.json (created when the run identified nothing)."""
+    from .sequencer import RESULT_NAME
+
+    path = out_dir / RESULT_NAME
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
+        doc[key] = value
+        path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    except (OSError, ValueError) as err:
+        raise OutputError(f"cannot add {key} to {path}: {err}") from err
+
+
 def _tuning_options(config: Config, args: argparse.Namespace) -> Any:
     options = config.tuning
     if args.preset is not None:
-        options = options.model_copy(update={"preset": args.preset})
+        options = _override(options, preset=args.preset)
     return options
+
+
+def _override(options: Any, **changes: Any) -> Any:
+    """A copy of a settings model with changes validated like the config file's (so "paper" becomes
+    ``Method.PAPER``; pydantic's ``model_copy`` would keep the bare string)."""
+    return type(options).model_validate({**options.model_dump(), **changes})
 
 
 def _description(args: argparse.Namespace) -> Any | None:
@@ -445,8 +487,8 @@ def _restore(args: argparse.Namespace, drive: Any, out_dir: Path, term: _Termina
     result.update(source=drive.info.backend, files=[str(log_path)],
                   restore={"from": str(args.restore_from), "applied": report.applied, "written": report.written,
                            "stored": report.stored})
-    term.say(f"restored {len(report.written)} parameters from {args.restore_from}" if report.applied
-             else "nothing restored")
+    term.result(f"restored {len(report.written)} parameters from {args.restore_from}" if report.applied
+                else "nothing restored")
     return result
 
 
@@ -475,7 +517,7 @@ def _details(term: _Terminal, result: dict[str, Any]) -> None:
              for i, it in enumerate(ident.get("iterations", []))]
     term.summary("details", rows)
     for note in ident.get("notes", []):
-        term.say(f"note: {note}")
+        term.out.print(f"note: {note}", markup=False)
 
 
 def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
@@ -529,13 +571,84 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
     return rows
 
 
+def _warm_cache() -> dict[str, Any]:
+    """--warm-cache: a short commissioning of the simulated drive (the shipped ``quick`` recipe) in a
+    temporary folder, so that numba compiles and caches every kernel a run uses; only the cache is kept."""
+    import tempfile
+    import time
+
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="commission-warm-") as tmp:
+        args = build_parser().parse_args(["--sim", "--config", "quick", "--out", tmp, "--json"])
+        _run(args, _Terminal(quiet=True, verbose=False))
+    return {"warm_cache": {"seconds": time.perf_counter() - start}, "files": []}
+
+
+@contextlib.contextmanager
+def _announce_compilation(term: _Terminal) -> Iterator[None]:
+    """Say on stderr when numba starts compiling: a first run after an install spends tens of
+    seconds there, which would otherwise look like a hang."""
+    if term.quiet:
+        yield
+        return
+    from numba.core import event
+
+    class FirstCompile(event.Listener):
+        said = False
+
+        def on_start(self, ev: event.Event) -> None:
+            if not self.said:
+                self.said = True
+                term.say("compiling the numerical kernels (numba; once after an install, about half a minute; "
+                         "`commission --warm-cache` does it ahead)")
+
+        def on_end(self, ev: event.Event) -> None:
+            pass
+
+    with event.install_listener("numba:compile", FirstCompile()):
+        yield
+
+
+def _next_step(args: argparse.Namespace, result: dict[str, Any]) -> str:
+    """The last line: what to do with what this run left."""
+    if "warm_cache" in result:
+        return (f"next: the kernels are compiled and cached ({result['warm_cache']['seconds']:.1f} s); "
+                "`commission --sim` or a drive's run starts without compiling")
+    report = next((f for f in result.get("files", []) if f.endswith(".html")), None)
+    see = f"open the report at {report}" if report else f"the files are in {result.get('out_dir')}"
+    if "restore" in result:
+        stored = result["restore"]["stored"]
+        return ("next: the previous values are back on the drive"
+                + ("" if stored else "; add --store to keep them after a power cycle"))
+    if "apply" in result:
+        if not result["apply"]["applied"]:
+            return f"next: nothing was written; {see}, then run again with --apply when ready"
+        return (f"next: the settings are on the drive; {see}"
+                + ("" if result["apply"]["stored"] else "; --store keeps them after a power cycle")
+                + f"; --restore-from {Path(result['out_dir']) / 'run.mcap'} puts the old values back")
+    ctl = result.get("controller")
+    if ctl is None:
+        missing = "--no-identify" if "identification" not in result else "--no-tune"
+        return f"next: {see}; run without {missing} for controller settings"
+    verification = ctl.get("verification", {})
+    if not verification.get("ready"):
+        reasons = "; ".join(verification.get("reasons", [])) or "see the report"
+        return f"next: {see}; the settings are NOT ready to apply ({reasons})"
+    if args.replay is not None:
+        return f"next: {see}; the settings are ready: to write them, commission the axis itself with --apply"
+    if args.sim and args.sim_link == "direct":
+        return (f"next: {see}; the settings are ready (--apply writes through a drive's parameter map: "
+                "try `commission --sim --sim-link canopen --drive sim --apply`)")
+    return f"next: {see}; the settings are ready: run again with --apply to write them to the drive"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     term = _Terminal(quiet=args.json, verbose=args.verbose)
     try:
-        with warnings.catch_warnings(record=True) as caught:
+        with warnings.catch_warnings(record=True) as caught, _announce_compilation(term):
             warnings.simplefilter("always")
-            result = _run(args, term)
+            result = _warm_cache() if args.warm_cache else _run(args, term)
         for w in caught:  # e.g. a report that could not be drawn: said once, in one line
             term.say(f"[yellow]warning:[/] {w.message}")
             result.setdefault("warnings", []).append(str(w.message))
@@ -552,6 +665,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.json:
         json.dump(result, sys.stdout, indent=2)
         sys.stdout.write("\n")
+    else:
+        term.result(_next_step(args, result))
     return 0
 
 

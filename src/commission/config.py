@@ -18,6 +18,7 @@ Unknown keys are errors, so a typo never silently falls back to a default.
 from __future__ import annotations
 
 from enum import Enum
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -142,15 +143,43 @@ def config_from_dict(data: dict[str, Any] | None, source: str = "config") -> Con
         raise ConfigError(_describe(err, source)) from err
 
 
-def load_config(path: str | Path | None) -> Config:
-    """Load and validate a YAML config; ``None`` gives the defaults (the paper's experiment)."""
+def recipes_dir() -> Path:
+    """The commissioning recipes that ship inside the package (the repository's ``configs/``)."""
+    shipped = resources.files("commission") / "configs"
+    if isinstance(shipped, Path) and shipped.is_dir():
+        return shipped
+    raise ConfigError(f"the installed package has no configs/ folder ({shipped})")
+
+
+def recipe_names() -> list[str]:
+    """Names of the shipped recipes (``default``, ``paper-literal``, …), usable as ``--config NAME``."""
+    return sorted(p.stem for p in recipes_dir().glob("*.yaml"))
+
+
+def resolve_config_path(path: str | Path | None) -> Path:
+    """The YAML file ``--config`` means: an existing file, else a shipped recipe's name
+    (``paper-literal`` or ``paper-literal.yaml``); ``None`` is the shipped ``default``."""
     if path is None:
-        return Config()
+        return recipes_dir() / "default.yaml"
     p = Path(path)
+    if p.exists() or p.parent != Path("."):
+        return p
+    shipped = recipes_dir() / (p.name if p.suffix == ".yaml" else f"{p.name}.yaml")
+    return shipped if shipped.is_file() else p
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Load and validate a YAML config (a file or a shipped recipe's name); ``None`` loads the
+    shipped ``configs/default.yaml`` (the paper's experiment)."""
+    p = resolve_config_path(path)
     try:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError as err:
-        raise ConfigError(f"{p}: no such config file") from err
+        try:
+            known = ", ".join(recipe_names())
+        except ConfigError:
+            known = "none"
+        raise ConfigError(f"{p}: no such config file (shipped recipes: {known})") from err
     except OSError as err:
         raise ConfigError(f"{p}: cannot read config: {err.strerror}") from err
     try:

@@ -5,11 +5,10 @@ reads from it which objects carry the waveform, the trace, the trigger and the
 progress, how the bus integers scale to SI units, and the vendor parameters a
 tuning result maps to. No object index of a vendor area appears in code.
 
-Where the folders are found (first that exists):
-
-1. ``$COMMISSION_DRIVERS`` (the Docker image should set it to
-   ``/opt/drive-commission/drivers``);
-2. ``drivers/`` of the source tree this package was imported from (editable install).
+Where the folders are found: ``$COMMISSION_DRIVERS`` when it is set (your own
+descriptions), else the ``drivers/`` that ships inside the package (the repository's
+top-level ``drivers/``, found through :mod:`importlib.resources` in a wheel and in an
+editable install alike).
 
 A drive reachable on a serial service port also has a Modbus RTU / MEMOBUS
 register map: ``modbus:`` inline, or ``modbus.yaml`` beside ``description.yaml``
@@ -23,6 +22,7 @@ from __future__ import annotations
 
 import math
 import os
+from importlib import resources
 from enum import Enum
 from pathlib import Path
 from typing import Literal
@@ -386,18 +386,19 @@ _CIA301_CLASSES = {
 
 
 def drivers_dir() -> Path:
-    """The folder of drive descriptions ($COMMISSION_DRIVERS, else the source tree's ``drivers/``)."""
+    """The folder of drive descriptions: ``$COMMISSION_DRIVERS``, else the package's own ``drivers/``."""
     env = os.environ.get(DRIVERS_ENV)
     if env:
         path = Path(env)
         if not path.is_dir():
             raise ConfigError(f"${DRIVERS_ENV} is {env}, which is not a folder")
         return path
-    repo = Path(__file__).resolve().parents[3] / "drivers"
-    if repo.is_dir():
-        return repo
+    shipped = resources.files("commission") / "drivers"
+    if isinstance(shipped, Path) and shipped.is_dir():
+        return shipped
     raise ConfigError(
-        f"no drive descriptions found: set ${DRIVERS_ENV} to the drivers/ folder (looked in {repo})"
+        f"no drive descriptions found: the installed package has no drivers/ folder ({shipped}); "
+        f"set ${DRIVERS_ENV} to one"
     )
 
 

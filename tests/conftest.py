@@ -1,0 +1,54 @@
+"""Runs that several test modules read: each is made once per session (a default `commission --sim` run
+costs seconds, and reading its outputs is what most command-line tests do)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from commission.cli import main
+
+
+@dataclass(frozen=True)
+class CliRun:
+    """One `commission` invocation in this process: exit code, what it printed, where it wrote."""
+
+    code: int
+    stdout: str
+    stderr: str
+    out: Path
+
+    @property
+    def doc(self) -> dict:
+        """The --json document on stdout."""
+        return json.loads(self.stdout)
+
+
+def run_cli(*argv: str | Path, out: Path | None = None) -> CliRun:
+    """``commission ARGV [--out OUT]`` in-process, stdout and stderr captured (not a TTY)."""
+    args = [str(a) for a in argv] + ([] if out is None else ["--out", str(out)])
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        code = main(args)
+    return CliRun(code, stdout.getvalue(), stderr.getvalue(), Path(out) if out is not None else Path())
+
+
+@pytest.fixture(scope="session")
+def default_sim_run(tmp_path_factory: pytest.TempPathFactory) -> CliRun:
+    """`commission --sim --out DIR --json` with the shipped default recipe (the paper's 10 s experiment)."""
+    run = run_cli("--sim", "--json", out=tmp_path_factory.mktemp("default-sim"))
+    assert run.code == 0, run.stderr
+    return run
+
+
+@pytest.fixture(scope="session")
+def quick_sim_run(tmp_path_factory: pytest.TempPathFactory) -> CliRun:
+    """`commission --sim --config quick --json`: the shipped 2 s recipe, for modes that only need a run."""
+    run = run_cli("--sim", "--config", "quick", "--json", out=tmp_path_factory.mktemp("quick-sim"))
+    assert run.code == 0, run.stderr
+    return run
