@@ -47,7 +47,8 @@ outputs (in --out DIR, default ./commissioning/<date-time>/):
 The summary goes to stdout, progress and warnings to stderr; the last line says what to do next.
 
 exit codes: 0 ok, 1 other error, 2 config, 3 input file, 4 drive, 5 safety limit, 6 identification,
-            7 output file, 130 interrupted
+            7 output file, 8 done but the identification is approximate (result.json's fit.reasons say why),
+            130 interrupted
 """
 
 
@@ -642,6 +643,10 @@ def _next_step(args: argparse.Namespace, result: dict[str, Any]) -> str:
     return f"next: {see}; the settings are ready: run again with --apply to write them to the drive"
 
 
+#: Exit code of a run that wrote all its outputs but whose identification is approximate.
+APPROXIMATE_EXIT_CODE = 8
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     term = _Terminal(quiet=args.json, verbose=args.verbose)
@@ -667,7 +672,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout.write("\n")
     else:
         term.result(_next_step(args, result))
-    return 0
+    # everything was written, but the model may be off by more than its intervals say
+    approximate = bool(((result.get("identification") or {}).get("fit") or {}).get("approximate"))
+    return APPROXIMATE_EXIT_CODE if approximate else 0
 
 
 if __name__ == "__main__":  # pragma: no cover
