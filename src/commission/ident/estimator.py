@@ -48,8 +48,9 @@ _HELD_EPSILON_NFEV = 10
 _DIFF_STEP = 1e-6
 #: Largest lag of the autocorrelation behind n_eff.
 _ACF_LAGS = 20
-#: The log-parameters are bounded to ×/÷ this around the start (a diverging step stays finite).
-_LOG_RANGE = math.log(1e3)
+#: The log-parameters are bounded to ×/÷ this around the start: a fit that would leave the range is
+#: lost, and the bound keeps its simulation finite and fast.
+_LOG_RANGE = math.log(30.0)
 #: Upper bound of the current loop's time constant [µs] (a 32 Hz loop).
 _LAG_MAX_US = 5000.0
 

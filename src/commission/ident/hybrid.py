@@ -314,6 +314,9 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
                                                            resolution_hz=resolution, quality=False)
     for label, p, e, lag in (("start", base, cell.epsilon_rad, 0.0),
                              ("result", pem.parameters, pem.epsilon_rad, pem.lag_s)):
+        if not 0.0 < _resonance_hz(p) < 0.25 * fs:  # an open-loop simulation could not resolve it
+            notes.append(f"step 5 on the {label} skipped: its resonance is not below fs/4")
+            continue
         try:
             iterations.append({"frd_error": _step5(rec, frd, p, e, lag), "epsilon_deg": math.degrees(e)})
         except IdentificationError as err:  # an open-loop simulation of a poor start may diverge
