@@ -293,9 +293,31 @@ def _choose(srch: _Search, notch_options: list[tuple[Notch, ...]], active: list[
             kv, bw, bad = found
             upper[(notches, ratio)] = kv * (1.0 + 1e-9)
             candidates.append({"notch": bool(notches), "filter_ratio": ratio, "kv_hz": kv, "bandwidth_hz": bw})
-            if notches not in best or kv > best[notches][0]:
+            if notches not in best or _better(srch, (kv, ratio), best[notches], notches):
                 best[notches] = (kv, bw, ratio, bad)
     return best, candidates
+
+
+#: Candidates whose gains lie within this fraction of each other count as equal (a band or a
+#: gain range stops them all at about the same gain): the one with more phase margin wins.
+_TIE = 0.02
+
+
+def _better(srch: _Search, new: tuple[float, float], old: tuple[float, float, float, float],
+            notches: tuple[Notch, ...]) -> bool:
+    """Whether candidate ``new`` (K_v, filter ratio) beats ``old``: a higher gain, or about the
+    same gain with more phase margin on the design model (less lag in its filter)."""
+    kv, ratio = new
+    if kv > (1.0 + _TIE) * old[0]:
+        return True
+    if kv < (1.0 - _TIE) * old[0]:
+        return False
+
+    def pm(k: float, r: float) -> float:
+        kp, Ti, tf_s = srch.gains(k, r)
+        return _evaluate(srch.loop, kp, Ti, tf_s, notches)[0].phase_margin_deg
+
+    return pm(kv, ratio) > pm(old[0], old[2])
 
 
 def _pick_notch(srch: _Search, best: _Best, f_r: float, notes: list[str]) -> tuple[Notch, ...]:
@@ -377,25 +399,29 @@ def _limit(srch: _Search, best: tuple[float, float, float, float], notches: tupl
            f_r: float, f_a: float) -> BandwidthLimit:
     """What stopped the gain at ``best``: the constraints the next (infeasible) gain breaks."""
     kv, _, ratio, bad = best
-    lo_hz, hi_hz = srch.kv_range()
+    hi_hz = srch.kv_range()[1]
     if not math.isfinite(bad):
         if hi_hz < srch.fs / 8.0 * (1.0 - 1e-9):
             return BandwidthLimit(LimitingFactor.GAIN_RANGE, f"K_v {kv:.1f} Hz: the top of the drive's range "
                                   f"({hi_hz:.1f} Hz, from its parameter map)")
         return BandwidthLimit(LimitingFactor.SEARCH_RANGE, f"K_v {kv:.1f} Hz: the design's highest gain (fs/8)")
-    broken = srch.failures(bad, ratio, notches, None, first_only=False)
+    broken = [(w, i, bad) for w, i in srch.failures(bad, ratio, notches, None, first_only=False)]
     if not broken:
         return BandwidthLimit(LimitingFactor.MARGINS, "the margins (the search's edge)")
+    # constraints that bind a little higher up count too (a band and a margin often meet)
+    above = bad * (1.0 + _TIE)
+    broken += [(w, i, above) for w, i in srch.failures(above, ratio, notches, None, first_only=False)
+               if w not in {b[0] for b in broken}]
     factors: list[tuple[LimitingFactor, str]] = []
-    for which, idx in broken:
+    members_seen = False
+    for which, idx, at in broken:
         if which == "band":
             factors.append((LimitingFactor.BAND, f"crossover at the band's limit {srch.crossover_limit_hz:.0f} Hz "
                             f"({srch.opt.band_factor:g} × the measured band's upper edge): above it the loop would "
                             "rest on the model's extrapolation (a high-band sweep in the experiment would allow more)"))
-        else:
-            factors.append(_cause(srch, bad, ratio, notches, which, idx, f_r, f_a))
-            if which == "member":
-                break  # the worst member stands for the set
+        elif which != "member" or not members_seen:  # the worst member stands for the set
+            members_seen = members_seen or which == "member"
+            factors.append(_cause(srch, at, ratio, notches, which, idx, f_r, f_a))
     first = factors[0]
     others = tuple(dict.fromkeys(f for f, _ in factors[1:] if f is not first[0]))
     return BandwidthLimit(first[0], first[1], others)
@@ -481,7 +507,8 @@ def _design(facts: IdentifiedModel, opt: TuningOptions, description: Any | None)
     kp, Ti, tf_s = srch.gains(kv, ratio)
     m_grid, mg_grid, bw = _evaluate(loop, kp, Ti, tf_s, chosen)
     limit = _limit(srch, best[chosen], chosen, md.f_resonance_hz, md.f_antiresonance_hz)
-    notes.append(f"bandwidth limited by the {limit.factor.value}: {limit.detail}")
+    notes.append(f"bandwidth limited by the {limit.factor.value}: {limit.detail}"
+                 + (f" (also binding: {', '.join(f.value for f in limit.others)})" if limit.others else ""))
     wa = 2.0 * math.pi * md.f_antiresonance_hz
     kpos = min(2.0 * math.pi * bw / opt.ratio("position"), opt.ratio("antiresonance") * wa)
     if kpos < 2.0 * math.pi * bw / opt.ratio("position"):

@@ -77,8 +77,9 @@ def resolve_dynamics(model: IdentifiedModel, options: TuningOptions, description
             options.assumed_current_loop_bandwidth_hz, Source.ASSUMED,
             f"tuning.assumed_current_loop_bandwidth_hz: nothing known ({record} shows no current-loop lag, the "
             "drive description gives none)", True)
-    if cl.how is Source.DESCRIPTION and model.sample_rate_hz and model.sample_rate_hz < 4.0 * float(cl.value or 0):
-        cl = Sourced(cl.value, cl.how, cl.source + f" ({record} cannot show a loop this fast)", cl.confirm)
+    if cl.how is Source.DESCRIPTION and model.sample_rate_hz and model.sample_rate_hz < 2.0 * float(cl.value or 0):
+        cl = Sourced(cl.value, cl.how, cl.source + f" (above {record}'s Nyquist frequency: it cannot show it)",
+                     cl.confirm)
 
     # the delays, in velocity-loop samples
     def delay(option: float | None, key: str, attr: str, assumed: float) -> Sourced:
@@ -103,7 +104,7 @@ def _gain_limits(description: Any | None, where: str) -> tuple[dict[str, tuple[f
     used = []
     for pname, key in _RANGES.items():
         spec = params.get(pname)
-        if spec is None or spec.unit.strip() not in _TO_SI:
+        if spec is None or spec.unit.strip() not in _TO_SI or (spec.min is None and spec.max is None):
             continue
         k = _TO_SI[spec.unit.strip()] * spec.scale
         lo = -math.inf if spec.min is None else spec.min * k

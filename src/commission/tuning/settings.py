@@ -333,7 +333,7 @@ class DriveDynamics:
                 "computation_delay_samples": self.computation_delay_samples.as_dict(),
                 "encoder_delay_samples": self.encoder_delay_samples.as_dict(),
                 "loop_delay_samples": self.loop_delay_samples,
-                "gain_limits": {k: list(v) for k, v in self.gain_limits.items()},
+                "gain_limits": {k: [_num(a), _num(b)] for k, (a, b) in self.gain_limits.items()},
                 "gain_limits_source": self.gain_limits_source}
 
 
