@@ -100,7 +100,8 @@ def _staged(drive, settings, tmp_path, options=None):
     report = apply_staged(
         drive, drive_parameters(conservative_settings(settings, opt.apply_conservative_fraction), drive.description),
         drive_parameters(settings, drive.description), lambda r: seq.closed_loop_check(r, f"check-{next(n)}.mcap"),
-        opt, torque_limit_nm=config.safety.max_torque_nm, yes=True, log=lambda topic, p: events.append(p),
+        opt, torque_limit_nm=config.safety.max_torque_nm, sample_rate_hz=config.excitation.sample_rate_hz, yes=True,
+        log=lambda topic, p: events.append(p),
         echo=lambda _: None)
     return report, events
 

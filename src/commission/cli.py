@@ -424,7 +424,8 @@ def _apply(args: argparse.Namespace, drive: Any, outcome: Any, term: _Terminal, 
         drive, drive_parameters(conservative_settings(settings, options.apply_conservative_fraction), drive.description),
         drive_parameters(settings, drive.description),
         lambda reference: sequencer.closed_loop_check(reference, f"apply-check-{next(checks)}.mcap"), options,
-        torque_limit_nm=config.safety.max_torque_nm, yes=args.yes, confirm=_confirm(term), store=args.store,
+        torque_limit_nm=config.safety.max_torque_nm, sample_rate_hz=config.excitation.sample_rate_hz, yes=args.yes,
+        confirm=_confirm(term), store=args.store,
         log=lambda topic, payload: append_result(outcome.log_path, topic, payload), echo=term.say)
     return report.as_dict()
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
 
 from ..ident.twomass import TwoMassParameters
 from .loop import (
@@ -159,6 +160,12 @@ def robust_margins(settings: ControllerSettings, p: TwoMassParameters, options: 
 
     Every member's margins are read on the frequency grid and its closed-loop poles checked;
     the few lowest are then located exactly on the loop (:func:`.loop.margins_of`)."""
+    with threadpool_limits(1):  # small matrices: BLAS threads only cost
+        return _robust_margins(settings, p, options, backlash)
+
+
+def _robust_margins(settings: ControllerSettings, p: TwoMassParameters, options: TuningOptions,
+                    backlash: bool) -> RobustMargins:
     pm_req, gm_req = settings.required_phase_margin_deg, settings.required_gain_margin_db
     ms = members(options.uncertainty, backlash, settings.current_loop_bandwidth_hz is None)
     grid: list[tuple[UncertaintyMember, float, float, bool]] = []

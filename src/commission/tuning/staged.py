@@ -157,7 +157,8 @@ class StagedApplyReport:
 
 
 def apply_staged(drive: Any, conservative: Sequence[ParameterValue], final: Sequence[ParameterValue],
-                 check: Check, options: TuningOptions, *, torque_limit_nm: float, yes: bool = False,
+                 check: Check, options: TuningOptions, *, torque_limit_nm: float, sample_rate_hz: float,
+                 yes: bool = False,
                  confirm: Callable[[str], bool] | None = None, store: bool = False, log: Log | None = None,
                  echo: Callable[[str], None] = print) -> StagedApplyReport:
     """Write ``conservative``, check, write ``final``, check; on a failed check (or an error during
@@ -166,6 +167,7 @@ def apply_staged(drive: Any, conservative: Sequence[ParameterValue], final: Sequ
     :param check: runs the closed-loop check on the drive with a velocity reference and returns
         its record (the sequencer's: envelope, enable, stop, log).
     :param torque_limit_nm: the torque limit the drive runs the check with (the vibration's scale).
+    :param sample_rate_hz: the rate ``check`` plays its reference at [Hz].
     :raises TuningError: a value was clamped (nothing written), or the drive cannot store.
     """
     for stage in (conservative, final):
@@ -197,7 +199,7 @@ def apply_staged(drive: Any, conservative: Sequence[ParameterValue], final: Sequ
     drive_name = getattr(description, "name", type(drive).__name__)
     _log({"event": "old_values", "drive": drive_name,
           "values": [{"name": n, "value": old[n], "unit": units[n][0], "object": units[n][1]} for n in names]})
-    reference = check_reference(options, float(getattr(description, "drive_sample_rate_hz", 8000.0) or 8000.0))
+    reference = check_reference(options, sample_rate_hz)
     written: dict[str, float] = {}
     checks: list[CheckResult] = []
 
