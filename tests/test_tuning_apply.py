@@ -188,3 +188,16 @@ def test_the_check_reads_overshoot_oscillation_and_vibration() -> None:
                          r, opt.model_copy(update={"apply_check_max_overshoot_pct": 30.0}), torque_limit_nm=0.5,
                          stage="final")
     assert not strict.ok and strict.reasons[0].startswith("overshoot 37 %")
+
+
+def test_staged_apply_refuses_a_drive_in_fault_before_writing(tmp_path) -> None:
+    """The checks must enable the drive: a drive in Fault is refused with nothing written."""
+    from sim_drive.device import InjectedFault
+
+    s = _design()
+    with open_drive(sim=True, sim_link="canopen", drive="sim", sim_plant=SLOW_DRIVE) as drive:
+        drive.simulator.device.inject_fault(InjectedFault.DRIVE_FAULT)
+        kp = drive.read_parameter("velocity_kp")
+        with pytest.raises(TuningError, match="Fault.*nothing written"):
+            _staged(drive, s, tmp_path)
+        assert drive.read_parameter("velocity_kp") == pytest.approx(kp)

@@ -179,6 +179,9 @@ def apply_staged(drive: Any, conservative: Sequence[ParameterValue], final: Sequ
     if store and (description is None or STORE_PARAMETER not in description.parameters):
         raise TuningError(f"the drive description has no '{STORE_PARAMETER}' object: cannot store to "
                           "non-volatile memory")
+    state = getattr(drive, "state", None)
+    if getattr(state, "name", "") == "FAULT":  # the checks must enable it: say so before writing anything
+        raise TuningError("the drive is in Fault: find the cause, acknowledge it, then apply again; nothing written")
     names = list(dict.fromkeys([p.name for p in conservative] + [p.name for p in final]))
     units = {p.name: (p.unit, p.object) for p in [*conservative, *final]}
     old = {n: float(drive.read_parameter(n)) for n in names}
