@@ -720,10 +720,12 @@ def _drive_table(s: Any) -> str:
             return [label, text, src]
 
         cl = dyn.current_loop_bandwidth_hz
+        def samples(x: Any) -> str:
+            return f"{float(x or 0.0):g} sample" + ("" if float(x or 0.0) == 1.0 else "s")
+
         rows += [row("current loop", cl, "ideal" if cl.value is None else f"{cl.value:g} Hz (first order)"),
-                 row("computation delay", dyn.computation_delay_samples,
-                     f"{dyn.computation_delay_samples.value:g} samples"),
-                 row("encoder delay", dyn.encoder_delay_samples, f"{dyn.encoder_delay_samples.value:g} samples"),
+                 row("computation delay", dyn.computation_delay_samples, samples(dyn.computation_delay_samples.value)),
+                 row("encoder delay", dyn.encoder_delay_samples, samples(dyn.encoder_delay_samples.value)),
                  row("velocity loop clock", dyn.sample_rate_hz, f"{dyn.sample_rate_hz.value:g} Hz"),
                  row("position loop period", dyn.position_loop_period_s,
                      f"{1e6 * float(dyn.position_loop_period_s.value or 0.0):g} µs")]
@@ -791,11 +793,14 @@ def _margins_table(tuning: TuningOutcome) -> str:
              "margins are beside.")
     if rb is not None:
         unc = rb.uncertainty
-        note += (f" Worst case over {rb.members} members (current loop ×{'/'.join(f'{x:g}' for x in unc.current_loop_factors)}, "
-                 f"delay +{'/'.join(f'{x:g}' for x in unc.extra_delay_samples)} samples, J_l ×"
-                 f"{'/'.join(f'{x:g}' for x in unc.load_inertia_factors)}, K ×"
-                 f"{'/'.join(f'{x:g}' for x in unc.stiffness_factors)}, ε ×{'/'.join(f'{x:g}' for x in unc.backlash_factors)}): "
-                 f"phase margin set by {rb.phase_member.describe(rb.current_loop_hz)}; gain margin by "
+
+        def each(xs: Sequence[float]) -> str:
+            return "/".join(f"{x:g}" for x in xs)
+
+        note += (f" Worst case over {rb.members} members (current loop ×{each(unc.current_loop_factors)}, "
+                 f"delay +{each(unc.extra_delay_samples)} samples, J_l ×{each(unc.load_inertia_factors)}, "
+                 f"K ×{each(unc.stiffness_factors)}, ε ×{each(unc.backlash_factors)}): phase margin set by "
+                 f"{rb.phase_member.describe(rb.current_loop_hz)}; gain margin by "
                  f"{rb.gain_member.describe(rb.current_loop_hz)}.")
     return _table(rows, header) + f"<p>{_e(note)}</p>"
 

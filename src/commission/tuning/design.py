@@ -490,8 +490,8 @@ def _design(facts: IdentifiedModel, opt: TuningOptions, description: Any | None)
         best, candidates = _choose(srch, notch_options, active, upper)
         if not best:
             pm_req, gm_req = opt.requirements()
-            raise TuningError(f"no velocity-loop gain meets PM ≥ {pm_req:g}° and GM ≥ {gm_req:g} dB on the identified "
-                              f"model and over the uncertainty set (resonance {md.f_resonance_hz:.1f} Hz, J_l/J_m "
+            raise TuningError(f"no velocity-loop gain meets PM ≥ {pm_req:g}° and GM ≥ {gm_req:g} dB on the "
+                              f"identified model and over the uncertainty set (resonance {md.f_resonance_hz:.1f} Hz, J_l/J_m "
                               f"{p.J_l / p.J_m:.2f}, current loop {'ideal' if cl_hz is None else f'{cl_hz:.0f} Hz'}, "
                               f"delay {delay:g} samples)")
         round_notes: list[str] = []
