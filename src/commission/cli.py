@@ -257,7 +257,8 @@ def _replay(args: argparse.Namespace, config: Config, term: _Terminal, identify:
         result["identification"] = identification.to_dict(str(args.replay))
         result["files"].append(str(write_result(out_dir, identification, str(args.replay))))
         if not args.no_tune:
-            exc = recorded.get("excitation") or {}
+            # the excitation's band, when the log says what it was (a CSV file does not)
+            exc = (recorded.get("excitation") or {}) if args.replay.suffix.lower() == ".mcap" else {}
             band = ((float(exc["f_start_hz"]), float(exc["f_end_hz"])) if {"f_start_hz", "f_end_hz"} <= set(exc)
                     else None)
             tuning = tune_and_export(out_dir, identification, _tuning_options(config, args), _description(args),

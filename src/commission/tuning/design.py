@@ -217,12 +217,13 @@ class _Search:
         return out
 
     def search(self, notches: tuple[Notch, ...], filter_ratio: float, active: list[int],
-               upper_hz: float | None = None) -> tuple[float, float, float] | None:
+               upper: tuple[float, float] | None = None) -> tuple[float, float, float] | None:
         """(highest feasible K_v [Hz], its bandwidth [Hz], the lowest infeasible K_v above it);
-        None if none is feasible. ``upper_hz``: an earlier round's result (the set only grows)."""
+        None if none is feasible. ``upper``: an earlier round's (K_v, lowest infeasible K_v above
+        it): the set of members only grows, so the gain can only fall."""
         lo_hz, hi_hz = self.kv_range()
-        if upper_hz is not None:
-            hi_hz = min(hi_hz, upper_hz)
+        if upper is not None:
+            hi_hz = min(hi_hz, upper[0])
         if hi_hz < lo_hz:
             return None
 
@@ -234,7 +235,8 @@ class _Search:
         i = next((j for j in range(grid.size - 1, -1, -1) if feasible(float(grid[j]))), None)
         if i is None:
             return None
-        last_ok, first_bad = float(grid[i]), math.inf
+        last_ok = float(grid[i])
+        first_bad = upper[1] if upper is not None else math.inf
         if i + 1 < grid.size:
             lo, hi = last_ok, float(grid[i + 1])
             for _ in range(10):
@@ -279,8 +281,12 @@ def _peaks(srch: _Search, notches: tuple[Notch, ...], best: tuple[float, float, 
 _Best = dict[tuple[Notch, ...], tuple[float, float, float, float]]
 
 
+#: an earlier round's (K_v, lowest infeasible K_v above it) per (notch choice, filter ratio)
+_Upper = dict[tuple[tuple[Notch, ...], float], tuple[float, float]]
+
+
 def _choose(srch: _Search, notch_options: list[tuple[Notch, ...]], active: list[int],
-            upper: dict[tuple[tuple[Notch, ...], float], float]) -> tuple[_Best, list[dict[str, Any]]]:
+            upper: _Upper) -> tuple[_Best, list[dict[str, Any]]]:
     candidates: list[dict[str, Any]] = []
     best: _Best = {}
     for notches in notch_options:
@@ -288,10 +294,10 @@ def _choose(srch: _Search, notch_options: list[tuple[Notch, ...]], active: list[
             found = srch.search(notches, ratio, active, upper.get((notches, ratio)))
             if found is None:
                 candidates.append({"notch": bool(notches), "filter_ratio": ratio, "kv_hz": None, "bandwidth_hz": None})
-                upper[(notches, ratio)] = 0.0
+                upper[(notches, ratio)] = (0.0, 0.0)
                 continue
             kv, bw, bad = found
-            upper[(notches, ratio)] = kv * (1.0 + 1e-9)
+            upper[(notches, ratio)] = (kv * (1.0 + 1e-9), bad)
             candidates.append({"notch": bool(notches), "filter_ratio": ratio, "kv_hz": kv, "bandwidth_hz": bw})
             if notches not in best or _better(srch, (kv, ratio), best[notches], notches):
                 best[notches] = (kv, bw, ratio, bad)
@@ -484,7 +490,7 @@ def _design(facts: IdentifiedModel, opt: TuningOptions, description: Any | None)
         notch_options.append((_notch_for(p, opt),))
     # the search against the members that broke an earlier choice, from the slowest drive corner
     active = [0] + next(([i] for i, r in enumerate(robust.items) if r.member.gap), [])
-    upper: dict[tuple[tuple[Notch, ...], float], float] = {}
+    upper: _Upper = {}
     notes: list[str] = _dynamics_notes(dyn)
     for _ in range(_MAX_ROUNDS):
         best, candidates = _choose(srch, notch_options, active, upper)
