@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
 import time
 
@@ -89,14 +90,16 @@ def timing(runs: int, description: object | None) -> None:
     opt = TuningOptions()
     none = TuningOptions(uncertainty=UncertaintySet.none())
 
-    def timed(fn) -> float:  # type: ignore[no-untyped-def]
-        out = []
+    def timed(fn) -> tuple[float, float]:  # type: ignore[no-untyped-def]
+        """(median wall time, median CPU time of this process) [s]: the machine is shared."""
+        wall, cpu = [], []
         for _ in range(runs):
             _plant_z_cached.cache_clear()  # a fresh process discretises every plant once
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             fn()
-            out.append(time.perf_counter() - t0)
-        return statistics.median(out)
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+        return statistics.median(wall), statistics.median(cpu)
 
     s = design(ident, opt, description=description, excitation_band_hz=band)  # warm-up (numba cache, imports)
     rows = [
@@ -107,9 +110,10 @@ def timing(runs: int, description: object | None) -> None:
         ("worst case over the set alone", timed(lambda: robust_margins(s, ident.parameters, opt, backlash=True))),
         ("verification (true plant + 1 kHz, 2 samples)", timed(lambda: verify(s, truth(FULL[0]), opt))),
     ]
-    print(f"design time, reference plant, median of {runs} (members: {s.robust.members if s.robust else 0})")
-    for name, sec in rows:
-        print(f"  {name:46s} {1e3 * sec:7.1f} ms")
+    print(f"design time, reference plant, median of {runs} (members: {s.robust.members if s.robust else 0}); "
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
+    for name, (wall, cpu) in rows:
+        print(f"  {name:46s} {1e3 * wall:7.1f} ms wall {1e3 * cpu:7.1f} ms CPU")
 
 
 def main() -> None:

@@ -570,7 +570,7 @@ def _design(facts: IdentifiedModel, opt: TuningOptions, description: Any | None)
     mg_ct = loop_margins(settings, p, gap=True) if backlash else None
     settings = replace(settings, margins=m_ct, margins_gap=mg_ct,
                        position_margins=loop_margins(settings, p, loop="position"))
-    return replace(settings, robust=robust_margins(settings, p, opt, backlash))
+    return replace(settings, robust=robust_margins(settings, p, opt, backlash, robust))
 
 
 def approach_time_constant(p: TwoMassParameters, kpos: float, opt: TuningOptions) -> tuple[float, str]:

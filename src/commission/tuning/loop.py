@@ -87,16 +87,20 @@ def _plant_z_cached(num_s: tuple[float, ...], den_s: tuple[float, ...], Ts: floa
         nd = np.trim_zeros(np.polyadd(np.polymul(n0[0], [1.0, 0.0]), n1[0]), "f")
         dd = np.polymul(dz, [1.0, 0.0])
     # (z − 1)/(Ts·z) and z^{-m}
-    nd = np.polymul(nd, [1.0 / Ts, -1.0 / Ts])
-    dd = np.polymul(dd, np.r_[1.0, np.zeros(1 + m)])
+    nd = np.convolve(nd, [1.0 / Ts, -1.0 / Ts])
+    dd = np.convolve(dd, np.r_[1.0, np.zeros(1 + m)])
     # cancel the common (z − 1): the plant has no integrator, ZOH{P/s} has its pole at z = 1
-    q_n, r_n = np.polydiv(nd, [1.0, -1.0])
-    q_d, r_d = np.polydiv(dd, [1.0, -1.0])
-    scale_n = max(np.max(np.abs(nd)), 1e-300)
-    scale_d = max(np.max(np.abs(dd)), 1e-300)
-    if np.max(np.abs(r_n)) < 1e-9 * scale_n and np.max(np.abs(r_d)) < 1e-9 * scale_d:
+    q_n, r_n = _over_z_minus_1(nd)
+    q_d, r_d = _over_z_minus_1(dd)
+    if abs(r_n) < 1e-9 * max(np.max(np.abs(nd)), 1e-300) and abs(r_d) < 1e-9 * max(np.max(np.abs(dd)), 1e-300):
         nd, dd = q_n, q_d
     return nd, dd
+
+
+def _over_z_minus_1(a: Poly) -> tuple[Poly, float]:
+    """(quotient, remainder) of a(z)/(z − 1), descending powers (synthetic division)."""
+    q = np.cumsum(a)
+    return q[:-1], float(q[-1])
 
 
 def _polymul(a: Poly, b: Poly) -> Poly:

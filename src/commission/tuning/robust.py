@@ -14,7 +14,6 @@ exactly (:func:`.loop.margins_of`) and checks every member's closed-loop poles.
 from __future__ import annotations
 
 import itertools
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -154,26 +153,32 @@ class MemberResponses:
 
 
 def robust_margins(settings: ControllerSettings, p: TwoMassParameters, options: TuningOptions,
-                   backlash: bool) -> RobustMargins:
+                   backlash: bool, responses: MemberResponses | None = None) -> RobustMargins:
     """The worst phase and gain margins of ``settings`` over the uncertainty set of ``options``
     around ``p`` and the settings' own drive model, with the members that set them.
 
     Every member's margins are read on the frequency grid and its closed-loop poles checked;
-    the few lowest are then located exactly on the loop (:func:`.loop.margins_of`)."""
+    the few lowest are then located exactly on the loop (:func:`.loop.margins_of`).
+    ``responses``: the same members already discretised (the design's), to save the work."""
     with threadpool_limits(1):  # small matrices: BLAS threads only cost
-        return _robust_margins(settings, p, options, backlash)
+        return _robust_margins(settings, p, options, backlash, responses)
 
 
 def _robust_margins(settings: ControllerSettings, p: TwoMassParameters, options: TuningOptions,
-                    backlash: bool) -> RobustMargins:
+                    backlash: bool, responses: MemberResponses | None) -> RobustMargins:
     pm_req, gm_req = settings.required_phase_margin_deg, settings.required_gain_margin_db
     ms = members(options.uncertainty, backlash, settings.current_loop_bandwidth_hz is None)
+    Ts = 1.0 / settings.sample_rate_hz
+    cn, cd = _controller_z(settings.velocity_gain, settings.velocity_integral_time_s,
+                           settings.torque_filter_time_constant_s, settings.notches, Ts)
+    if responses is None or responses.Ts != Ts or {r.member for r in responses.items} != set(ms):
+        responses = MemberResponses(p, ms, settings.current_loop_bandwidth_hz, settings.loop_delay_samples, Ts,
+                                    _freq_grid(settings.sample_rate_hz, points=SEARCH_POINTS))
+    C = _eval(cn, cd, responses.w, Ts)
     grid: list[tuple[UncertaintyMember, float, float, bool]] = []
-    w = _freq_grid(settings.sample_rate_hz, points=SEARCH_POINTS)
-    for m in ms:
-        lt = member_loop(settings, p, m)
-        pm_i, gm_i, _, _ = _grid_crossings(lt.response(w / (2.0 * math.pi)), w)
-        grid.append((m, pm_i, gm_i, _stable(lt.num, lt.den)))
+    for r in responses.items:
+        pm_i, gm_i, _, _ = _grid_crossings(C * r.P, responses.w)
+        grid.append((r.member, pm_i, gm_i, _stable(_polymul(cn, r.num), _polymul(cd, r.den))))
     exact: dict[UncertaintyMember, LoopMargins] = {}
     for key in (1, 2):
         for m, *_ in sorted(grid, key=lambda g: g[key])[:_EXACT_WORST]:
