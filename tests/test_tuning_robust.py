@@ -261,8 +261,6 @@ def test_yaskawa_design_uses_the_drives_loop() -> None:
     lo, hi = dyn.gain_limits["velocity_gain_hz"]
     assert (lo, hi) == pytest.approx((1.0, 2000.0))
     assert lo <= s.velocity_loop_gain_hz <= hi
-    # the same record designed for the unknown drive's slower assumed loop gives less
-    assert s.velocity_gain > 0.9 * _reference().velocity_gain
     # the worst member by python-control, with the fractional delay as 1.5 + 1 samples → checked
     # on whole samples either side: 2 (optimistic) and 3 (pessimistic) bracket the reported margin
     m = s.robust.phase_member
