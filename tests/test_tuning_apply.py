@@ -82,27 +82,35 @@ def test_refuses_to_apply_on_a_range_violation() -> None:
 
 
 # -- staged write-back (issue #20) -------------------------------------------------------------------
+# On the simulated drive's direct link (its own velocity loop takes velocity_kp / velocity_ki, the
+# parameters written here): the staging, the check and the restore, without the virtual CAN bus.
+
 #: a simulated drive slower than ideal: a 1 kHz current loop and 2 samples of computation delay
 SLOW_DRIVE = {"current_loop_bandwidth_hz": 1000.0, "delay_samples": 2}
+LOOP_GAINS = ("velocity_kp", "velocity_ki")
 
 
-def _staged(drive, settings, tmp_path, options=None):
+def _gains(settings):
+    """The settings' values of the parameters the simulated drive's own loop uses."""
+    return [p for p in drive_parameters(settings, load_description("sim")) if p.name in LOOP_GAINS]
+
+
+def _staged(drive, settings, tmp_path, **kwargs):
     """apply_staged with the sequencer's closed-loop check on ``drive``; returns (report, events)."""
     from commission.config import config_from_dict
     from commission.sequencer import Sequencer
     from commission.tuning import apply_staged, conservative_settings
 
     config = config_from_dict({"sim": SLOW_DRIVE})
-    opt = options or config.tuning
+    opt = config.tuning
     seq = Sequencer(config, drive, tmp_path)
     events: list[dict] = []
     n = iter(range(1, 3))
     report = apply_staged(
-        drive, drive_parameters(conservative_settings(settings, opt.apply_conservative_fraction), drive.description),
-        drive_parameters(settings, drive.description), lambda r: seq.closed_loop_check(r, f"check-{next(n)}.mcap"),
-        opt, torque_limit_nm=config.safety.max_torque_nm, sample_rate_hz=config.excitation.sample_rate_hz, yes=True,
-        log=lambda topic, p: events.append(p),
-        echo=lambda _: None)
+        drive, _gains(conservative_settings(settings, opt.apply_conservative_fraction)), _gains(settings),
+        lambda r: seq.closed_loop_check(r, f"check-{next(n)}.mcap"), opt, torque_limit_nm=config.safety.max_torque_nm,
+        sample_rate_hz=config.excitation.sample_rate_hz, log=lambda topic, p: events.append(p), echo=lambda _: None,
+        **({"yes": True} | kwargs))
     return report, events
 
 
@@ -115,9 +123,8 @@ def test_staged_apply_restores_the_previous_values_when_the_check_sees_oscillati
 
     ideal = design(REFERENCE_PLANT, TuningOptions(ideal_drive=True, uncertainty=UncertaintySet.none(),
                                                   band_factor=None), epsilon_rad=math.radians(0.4))
-    with open_drive(sim=True, sim_link="canopen", drive="sim", sim_plant=SLOW_DRIVE) as drive:
-        names = [p.name for p in drive_parameters(ideal, drive.description)]
-        before = {n: drive.read_parameter(n) for n in names}
+    with open_drive(sim=True, sim_plant=SLOW_DRIVE) as drive:
+        before = {n: drive.read_parameter(n) for n in LOOP_GAINS}
         report, events = _staged(drive, ideal, tmp_path)
         assert not report.applied and report.restored
         first, final = report.checks
@@ -125,14 +132,14 @@ def test_staged_apply_restores_the_previous_values_when_the_check_sees_oscillati
         assert final.stage == "final" and not final.ok
         assert any("oscillation" in r for r in final.reasons)
         assert final.oscillation > 0.05 and final.oscillation_hz is not None and final.oscillation_hz > 100.0
-        for n in names:
-            assert drive.read_parameter(n) == pytest.approx(before[n], rel=1e-6, abs=1e-9), n
-        assert drive.simulator.device.velocity_kp == pytest.approx(0.12)  # the device's own loop has its gain back
+        for n in LOOP_GAINS:
+            assert drive.read_parameter(n) == pytest.approx(before[n], rel=1e-12), n
+        assert drive.device.velocity_kp == pytest.approx(0.12)  # the device's own loop has its gain back
     kinds = [e["event"] for e in events]
     assert kinds[0] == "old_values" and kinds.count("stage") == 2 and kinds.count("check") == 2
     assert "restore" in kinds and kinds.index("restore") > max(i for i, k in enumerate(kinds) if k == "check")
     restored = [e for e in events[kinds.index("restore"):] if e["event"] == "write"]
-    assert {e["name"]: e["value"] for e in restored} == pytest.approx({n: before[n] for n in names})
+    assert {e["name"]: e["value"] for e in restored} == pytest.approx(before)
     assert (tmp_path / "check-1.mcap").is_file() and (tmp_path / "check-2.mcap").is_file()
     old = restore_values({PARAMETER_TOPIC: events}, load_description("sim"))
     assert {p.name: p.value for p in old} == pytest.approx(before)
@@ -141,12 +148,29 @@ def test_staged_apply_restores_the_previous_values_when_the_check_sees_oscillati
 def test_staged_apply_writes_the_final_set_when_both_checks_pass(tmp_path) -> None:
     """The tool's own design (robust to the slower drive): both checks pass, the final values stay."""
     s = _design()
-    with open_drive(sim=True, sim_link="canopen", drive="sim", sim_plant=SLOW_DRIVE) as drive:
+    with open_drive(sim=True, sim_plant=SLOW_DRIVE) as drive:
         report, events = _staged(drive, s, tmp_path)
         assert report.applied and not report.restored
         assert all(c.ok for c in report.checks) and len(report.checks) == 2
-        assert drive.simulator.device.velocity_kp == pytest.approx(s.velocity_gain, rel=1e-6)
+        assert drive.device.velocity_kp == pytest.approx(s.velocity_gain, rel=1e-12)
     assert "restore" not in [e["event"] for e in events]
+
+
+def test_staged_apply_acknowledges_a_fault_only_with_consent(tmp_path) -> None:
+    """The checks must enable the drive: a drive in Fault (here an injected one, as when its
+    heartbeat consumer trips while the host identifies) is refused with nothing written unless
+    the operator agrees; with consent the fault is acknowledged, logged, and the stages run."""
+    from sim_drive.device import InjectedFault
+
+    s = _design()
+    with open_drive(sim=True, sim_plant=SLOW_DRIVE) as drive:
+        drive.device.inject_fault(InjectedFault.DRIVE_FAULT)
+        kp = drive.read_parameter("velocity_kp")
+        with pytest.raises(TuningError, match="Fault.*nothing written"):
+            _staged(drive, s, tmp_path, yes=False, confirm=lambda q: False)
+        assert drive.read_parameter("velocity_kp") == pytest.approx(kp)
+        report, events = _staged(drive, s, tmp_path)
+        assert report.applied and [e["event"] for e in events][:2] == ["old_values", "fault_reset"]
 
 
 def test_the_check_reads_overshoot_oscillation_and_vibration() -> None:
@@ -188,16 +212,3 @@ def test_the_check_reads_overshoot_oscillation_and_vibration() -> None:
                          r, opt.model_copy(update={"apply_check_max_overshoot_pct": 30.0}), torque_limit_nm=0.5,
                          stage="final")
     assert not strict.ok and strict.reasons[0].startswith("overshoot 37 %")
-
-
-def test_staged_apply_refuses_a_drive_in_fault_before_writing(tmp_path) -> None:
-    """The checks must enable the drive: a drive in Fault is refused with nothing written."""
-    from sim_drive.device import InjectedFault
-
-    s = _design()
-    with open_drive(sim=True, sim_link="canopen", drive="sim", sim_plant=SLOW_DRIVE) as drive:
-        drive.simulator.device.inject_fault(InjectedFault.DRIVE_FAULT)
-        kp = drive.read_parameter("velocity_kp")
-        with pytest.raises(TuningError, match="Fault.*nothing written"):
-            _staged(drive, s, tmp_path)
-        assert drive.read_parameter("velocity_kp") == pytest.approx(kp)

@@ -136,6 +136,31 @@ def judge_check(recording: Recording, reference: NDArray[np.float64], options: T
     return CheckResult(stage, not reasons, overshoot, osc, osc_hz, vib, tuple(reasons))
 
 
+def _in_fault(drive: Any) -> bool:
+    return getattr(getattr(drive, "state", None), "name", "") == "FAULT"
+
+
+def _acknowledge_fault(drive: Any, yes: bool, confirm: Callable[[str], bool] | None,
+                       echo: Callable[[str], None]) -> bool:
+    """The checks enable the drive: a drive found in Fault (e.g. its heartbeat consumer tripped
+    while the host was busy identifying, the axis disabled) is acknowledged only with the
+    operator's consent (``yes`` or the prompt); if the cause persists the drive faults again
+    in the check and the previous values go back. Returns whether a fault was acknowledged.
+
+    :raises TuningError: no consent, or the fault does not clear (nothing written).
+    """
+    if not _in_fault(drive):
+        return False
+    question = "the drive is in Fault: acknowledge the fault and go on with the staged write?"
+    if not (yes or (confirm is not None and confirm(question))):
+        raise TuningError("the drive is in Fault: find the cause, acknowledge it, then apply again; nothing written")
+    drive.fault_reset()
+    if _in_fault(drive):
+        raise TuningError("the drive stays in Fault after the acknowledgement: find the cause; nothing written")
+    echo("the drive was in Fault: acknowledged")
+    return True
+
+
 @dataclass(frozen=True)
 class StagedApplyReport:
     """What :func:`apply_staged` did."""
@@ -179,9 +204,7 @@ def apply_staged(drive: Any, conservative: Sequence[ParameterValue], final: Sequ
     if store and (description is None or STORE_PARAMETER not in description.parameters):
         raise TuningError(f"the drive description has no '{STORE_PARAMETER}' object: cannot store to "
                           "non-volatile memory")
-    state = getattr(drive, "state", None)
-    if getattr(state, "name", "") == "FAULT":  # the checks must enable it: say so before writing anything
-        raise TuningError("the drive is in Fault: find the cause, acknowledge it, then apply again; nothing written")
+    acknowledged = _acknowledge_fault(drive, yes, confirm, echo)
     names = list(dict.fromkeys([p.name for p in conservative] + [p.name for p in final]))
     units = {p.name: (p.unit, p.object) for p in [*conservative, *final]}
     old = {n: float(drive.read_parameter(n)) for n in names}
@@ -202,6 +225,8 @@ def apply_staged(drive: Any, conservative: Sequence[ParameterValue], final: Sequ
     drive_name = getattr(description, "name", type(drive).__name__)
     _log({"event": "old_values", "drive": drive_name,
           "values": [{"name": n, "value": old[n], "unit": units[n][0], "object": units[n][1]} for n in names]})
+    if acknowledged:
+        _log({"event": "fault_reset", "drive": drive_name, "reason": "in Fault before the staged write"})
     reference = check_reference(options, sample_rate_hz)
     written: dict[str, float] = {}
     checks: list[CheckResult] = []
