@@ -277,8 +277,12 @@ def _replay(args: argparse.Namespace, config: Config, term: _Terminal, identify:
         result["identification"] = identification.to_dict(str(args.replay))
         result["files"].append(str(write_result(out_dir, identification, str(args.replay))))
         if not args.no_tune:
+            # the excitation's band, when the log says what it was (a CSV file does not)
+            exc = (recorded.get("excitation") or {}) if args.replay.suffix.lower() == ".mcap" else {}
+            band = ((float(exc["f_start_hz"]), float(exc["f_end_hz"])) if {"f_start_hz", "f_end_hz"} <= set(exc)
+                    else None)
             tuning = tune_and_export(out_dir, identification, _tuning_options(config, args), _description(args),
-                                     plant)
+                                     plant, band)
             result["controller"] = tuning.controller
             result["files"] += [str(f) for f in tuning.files]
     from .sequencer import write_run_report
@@ -339,10 +343,6 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
         if problem is not None:
             drive.close()
             raise ConfigError(problem)
-    if not args.sim and not args.no_tune and config.tuning.current_loop_bandwidth_hz is None:
-        warnings.warn("tuning assumes an ideal current loop unless the identifier finds its lag: set "
-                      "tuning.current_loop_bandwidth_hz to the drive's for margins that hold on the real axis",
-                      stacklevel=1)
     config = config.model_copy(update={"tuning": _tuning_options(config, args)})
     true_plant = None
     if args.sim:
@@ -352,12 +352,13 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     with drive:
         term.say(f"drive: {drive.info.vendor} {drive.info.product} ({drive.info.backend})")
         sequencer = Sequencer(config, drive, out_dir, progress=term.progress, identify=identify,
-                              tune=not args.no_tune, true_plant=true_plant)
+                              tune=not args.no_tune, true_plant=true_plant,
+                              description=getattr(drive, "description", None) or _description(args))
         outcome = sequencer.run()
         check = sequencer.measure_backlash() if args.measure_backlash else None
         term.close()
         if args.apply:
-            result["apply"] = _apply(args, drive, outcome, term)
+            result["apply"] = _apply(args, drive, outcome, term, sequencer, config)
     if check is not None:
         _, reversals, check_log = check
         result["backlash_check"] = {
@@ -449,19 +450,28 @@ def _confirm(term: _Terminal) -> Any:
     return ask
 
 
-def _apply(args: argparse.Namespace, drive: Any, outcome: Any, term: _Terminal) -> dict[str, Any]:
-    """--apply: write the verified settings through the drive's parameter map, logged in run.mcap."""
+def _apply(args: argparse.Namespace, drive: Any, outcome: Any, term: _Terminal, sequencer: Any,
+           config: Config) -> dict[str, Any]:
+    """--apply: write the verified settings in two stages through the drive's parameter map (a
+    conservative set, a closed-loop check on the drive, the final set and its check; the previous
+    values back on a failed check), every value logged in run.mcap."""
     from .mcaplog import append_result
-    from .tuning import TuningError, apply, drive_parameters
+    from .tuning import TuningError, apply_staged, conservative_settings, drive_parameters
 
     assert outcome.tuning is not None  # checked before the run
-    verification = outcome.tuning.verification
-    if not verification.ready:
-        raise TuningError("settings are not ready, nothing written: " + "; ".join(verification.reasons))
-    report = apply(drive, drive_parameters(outcome.tuning.settings, drive.description), yes=args.yes,
-                   confirm=_confirm(term), store=args.store,
-                   log=lambda topic, payload: append_result(outcome.log_path, topic, payload), echo=term.say)
-    return {"applied": report.applied, "written": report.written, "stored": report.stored}
+    if not outcome.tuning.controller["verification"]["ready"]:
+        raise TuningError("settings are not ready, nothing written: "
+                          + "; ".join(outcome.tuning.controller["verification"]["reasons"]))
+    settings, options = outcome.tuning.settings, config.tuning
+    checks = iter(range(1, 3))
+    report = apply_staged(
+        drive, drive_parameters(conservative_settings(settings, options.apply_conservative_fraction), drive.description),
+        drive_parameters(settings, drive.description),
+        lambda reference: sequencer.closed_loop_check(reference, f"apply-check-{next(checks)}.mcap"), options,
+        torque_limit_nm=config.safety.max_torque_nm, sample_rate_hz=config.excitation.sample_rate_hz, yes=args.yes,
+        confirm=_confirm(term), store=args.store,
+        log=lambda topic, payload: append_result(outcome.log_path, topic, payload), echo=term.say)
+    return report.as_dict()
 
 
 def _restore(args: argparse.Namespace, drive: Any, out_dir: Path, term: _Terminal,
@@ -562,6 +572,7 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
                                  if ctl["position_loop"].get("reference_filter_time_constant_s") else "")),
             ("notch / backlash comp.", f"{notch} / {bc.get('amount_rad', 0.0) * 1e3:.3g} mrad"),
             ("margins", f"PM {m['phase_margin_deg']:.1f}°  GM {m['gain_margin_db']:.1f} dB"),
+            *_robust_rows(ctl),
             ("controller ready", "yes" if ver.get("ready") else "NO: " + "; ".join(ver.get("reasons", []))),
         ]
     if "backlash_check" in result:
@@ -641,6 +652,23 @@ def _next_step(args: argparse.Namespace, result: dict[str, Any]) -> str:
         return (f"next: {see}; the settings are ready (--apply writes through a drive's parameter map: "
                 "try `commission --sim --sim-link canopen --drive sim --apply`)")
     return f"next: {see}; the settings are ready: run again with --apply to write them to the drive"
+
+
+def _robust_rows(ctl: dict[str, Any]) -> list[tuple[str, str]]:
+    """The worst case over the uncertainty set and what limited the bandwidth (controller.json)."""
+    rows = []
+    rb, lim, band = ctl.get("robust"), ctl.get("bandwidth_limit"), ctl.get("measured_band") or {}
+    if rb:
+        rows.append(("worst-case margins", f"PM {rb['phase_margin_deg']:.1f}° ({rb['phase_margin_member']['description']})"
+                     f"  GM {rb['gain_margin_db']:.1f} dB ({rb['gain_margin_member']['description']})"
+                     f" over {rb['members']} members"))
+    if band.get("band_hz") and band.get("crossover_hz") is not None:
+        lo, hi = band["band_hz"]
+        rows.append(("crossover / band", f"{band['crossover_hz']:.0f} Hz in the measured {lo:g}–{hi:g} Hz"
+                     + (f" (limit {band['crossover_limit_hz']:.0f} Hz)" if band.get("crossover_limit_hz") else "")))
+    if lim:
+        rows.append(("bandwidth limited by", f"{lim['factor']}: {lim['detail']}"))
+    return rows
 
 
 #: Exit code of a run that wrote all its outputs but whose identification is approximate.

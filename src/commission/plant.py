@@ -33,7 +33,9 @@ delay of METHOD.md ("Traps"). Exactly, the discrete transfer function from
 torque samples to velocity samples is (1 − z⁻¹)/Ts · ZOH{P(s)/s}, P = V_m/T.
 The current loop (if any) is dτ/dt = ω_c·(τ_ref − τ), ω_c = 2π·bandwidth;
 across a held sample its output is known in closed form and is evaluated
-exactly wherever the integrator needs the torque. Noise ``n[k]`` is added to the
+exactly wherever the integrator needs the torque. A drive's computation delay
+(``delay_samples`` = d) makes the reference of tick k reach the current loop at tick
+k + d: the torque reference a trace records is the one the drive computed. Noise ``n[k]`` is added to the
 motor torque after the current loop and held over the sample like the
 reference; it is drawn as ``numpy.random.default_rng(seed).normal(0, σ, N)``,
 one value per sample, in sample order, and only when σ > 0.
@@ -93,6 +95,7 @@ from pydantic import BaseModel, ConfigDict, Field, validate_call
 from .ident.twomass import TwoMassParameters
 
 __all__ = [
+    "MAX_DELAY_SAMPLES",
     "MAX_LAG_STEP",
     "MAX_RATE_STEP",
     "SUBSTEPS_PER_SAMPLE",
@@ -159,6 +162,13 @@ class PlantParameters(BaseModel):
         gt=0,
         description="Bandwidth of a first-order lag from torque reference to motor torque [Hz]; "
         "None = ideal current loop.",
+    )
+    delay_samples: int = Field(
+        0,
+        ge=0,
+        le=8,
+        description="Whole samples between a torque reference and the current loop's input: the "
+        "drive's computation and transport delay beyond the zero-order hold's own sample.",
     )
     torque_noise_nm: float = Field(
         0.0,
@@ -255,6 +265,8 @@ class PlantKernel(NamedTuple):
     coulomb_velocity_scale_rad_s: float
     current_loop_rad_s: float
     """ω_c = 2π·bandwidth of the current loop [rad/s]; 0 = ideal."""
+    delay_samples: int
+    """Whole samples between a torque reference and the current loop's input."""
     encoder_step_motor_rad: float
     encoder_step_load_rad: float
     inv_J_m: float
@@ -267,9 +279,13 @@ class PlantKernel(NamedTuple):
 
 # Layout of the loop's memory (one float64 vector so that numba can update it in place):
 # x_m, v_m, x_s (twist), v_l, applied torque, contact mode, last latched encoder positions
-# (motor, load), PI integrator. Loops compiled elsewhere use the accessors below.
+# (motor, load), PI integrator, then the computation delay's line of torque references (the
+# newest first). Loops compiled elsewhere use the accessors below.
 _XM, _VM, _XS, _VL, _TC, _MODE, _QM, _QL, _INTEG = range(9)
-_STATE_SIZE = 9
+#: Longest computation delay the plant holds [samples] (PlantParameters.delay_samples ≤ this).
+MAX_DELAY_SAMPLES = 8
+_DELAY0 = 9
+_STATE_SIZE = _DELAY0 + MAX_DELAY_SAMPLES
 
 
 @njit(cache=True)
@@ -553,10 +569,25 @@ def advance_sample(s: NDArray[np.float64], u: float, noise: float, p: PlantKerne
     (:mod:`commission.tuning.closedloop`): the encoders are latched by the caller
     (:func:`quantise` of :func:`motor_position` / :func:`load_position`) before u is computed.
     """
+    u = _delayed(s, u, p)
     # Current loop: torque = u + c·exp(−ω_c·t) over the sample, c = deviation at its start.
     c = s[_TC] - u if p.current_loop_rad_s > 0.0 else 0.0
     c = _integrate_sample(s, u + noise, c, p, True)
     s[_TC] = u + c
+
+
+@njit(cache=True)
+def _delayed(s: NDArray[np.float64], u: float, p: PlantKernel) -> float:
+    """The torque reference that reaches the current loop now: ``u`` itself without a
+    computation delay, else the one computed ``delay_samples`` ticks ago (``u`` joins the line)."""
+    d = p.delay_samples
+    if d <= 0:
+        return u
+    out = s[_DELAY0 + d - 1]
+    for i in range(d - 1, 0, -1):
+        s[_DELAY0 + i] = s[_DELAY0 + i - 1]
+    s[_DELAY0] = u
+    return out
 
 
 @njit(cache=True)
@@ -621,9 +652,10 @@ def _simulate(
         if locate_events:
             advance_sample(s, u, noise[k], p)
         else:  # comparison mode only (bench): mode switches at sub-step boundaries
-            c = s[_TC] - u if lag else 0.0
-            c = _integrate_sample(s, u + noise[k], c, p, False)
-            s[_TC] = u + c
+            ud = _delayed(s, u, p)
+            c = s[_TC] - ud if lag else 0.0
+            c = _integrate_sample(s, ud + noise[k], c, p, False)
+            s[_TC] = ud + c
 
 
 def _fastest_contact_rate(params: PlantParameters) -> float:
@@ -688,6 +720,7 @@ class Plant:
             coulomb_load_nm=params.coulomb_load_nm,
             coulomb_velocity_scale_rad_s=params.coulomb_velocity_scale_rad_s,
             current_loop_rad_s=0.0 if bw is None else 2.0 * math.pi * bw,
+            delay_samples=int(params.delay_samples),
             encoder_step_motor_rad=2.0 * math.pi / 2.0**params.encoder_bits_motor,
             encoder_step_load_rad=2.0 * math.pi / 2.0**params.encoder_bits_load,
             inv_J_m=1.0 / params.J_m,

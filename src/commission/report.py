@@ -626,15 +626,16 @@ def _verdict(ident: Any, tuning: TuningOutcome | None) -> str:
     reasons = list(ver.get("reasons", []))
     if ready:
         head = "Ready: the settings passed every check"
-        body = ("<p>Margins met on the identified model and on the verification plant; no limit cycle; "
-                "every step settles.</p>")
+        body = ("<p>Margins met on the identified model, over the uncertainty set around it (worst case below) "
+                "and on the verification plant; no limit cycle; every step settles.</p>")
         nxt = ("Next: apply them with <code>commission … --apply</code> (shows old → new and asks), or enter "
                "the values of controller.json / controller-&lt;drive&gt;.yaml in the drive's tool.")
     else:
         head = "Not ready: do not apply these settings"
         body = "<ul>" + "".join(f"<li>{_e(r)}</li>" for r in reasons) + "</ul>"
         nxt = ("Next: check the model below (identification notes, fit), then try <code>--preset soft</code> "
-               "or set the drive's current-loop bandwidth and delay in the config (tuning section).")
+               "or give the drive's current-loop bandwidth and delays (its description's loop block, or the "
+               "config's tuning section).")
     body += "".join(f"<p>{_e(n)}</p>" for n in notes)
     return (f'<section class="verdict {"ready" if ready else "not-ready"}" id="verdict"><h2>{_e(head)}</h2>'
             f"{body}<p>{nxt}</p></section>")
@@ -665,6 +666,13 @@ def _cards(ident: Any, tuning: TuningOutcome | None, true_plant: PlantParameters
             ("tile-gm", "—" if gm is None else f"{gm:.1f} dB",
              f"gain margin, velocity loop (required {mg['required_gain_margin_db']:g} dB)"),
         ]
+        rb = tuning.controller.get("robust")
+        if rb:
+            cards.append(("tile-worst", f"{rb['phase_margin_deg']:.1f}° / {rb['gain_margin_db']:.1f} dB",
+                          f"worst case over {rb['members']} members ({rb['phase_margin_member']['description']})"))
+        lim = tuning.controller.get("bandwidth_limit")
+        if lim:
+            cards.append(("tile-limit", str(lim["factor"]), "what limited the velocity loop's bandwidth"))
     if true_plant is not None:
         cards.append(("tile-true-epsilon", f"{true_plant.epsilon_deg:.4f}°", "true ε (simulator)"))
     if not cards:
@@ -702,13 +710,46 @@ def _settings_table(s: Any) -> str:
     else:
         rows.append(("backlash compensation", "off", ""))
     rows += [
-        ("current loop assumed", "ideal" if s.current_loop_bandwidth_hz is None
-         else f"{s.current_loop_bandwidth_hz:g} Hz first-order", ""),
-        ("computation delay assumed", float(s.computation_delay_samples), "samples"),
         ("velocity loop clock", s.sample_rate_hz, "Hz"),
         ("preset", s.preset.value if hasattr(s.preset, "value") else str(s.preset), ""),
     ]
-    return _table(rows, ["setting", "value", "unit"])
+    return _table(rows, ["setting", "value", "unit"]) + _drive_table(s)
+
+
+def _drive_table(s: Any) -> str:
+    """The drive's loop the settings were designed for, each figure with where it comes from,
+    and the measured band that bounds the crossover."""
+    dyn = s.dynamics
+    rows: list[list[Any]] = []
+    if dyn is not None:
+        def row(label: str, sv: Any, text: str) -> list[Any]:
+            src = f"{sv.how.value}: {sv.source}" + (" — confirm" if sv.confirm else "")
+            return [label, text, src]
+
+        cl = dyn.current_loop_bandwidth_hz
+        def samples(x: Any) -> str:
+            return f"{float(x or 0.0):g} sample" + ("" if float(x or 0.0) == 1.0 else "s")
+
+        rows += [row("current loop", cl, "ideal" if cl.value is None else f"{cl.value:g} Hz (first order)"),
+                 row("computation delay", dyn.computation_delay_samples, samples(dyn.computation_delay_samples.value)),
+                 row("encoder delay", dyn.encoder_delay_samples, samples(dyn.encoder_delay_samples.value)),
+                 row("velocity loop clock", dyn.sample_rate_hz, f"{dyn.sample_rate_hz.value:g} Hz"),
+                 row("position loop period", dyn.position_loop_period_s,
+                     f"{1e6 * float(dyn.position_loop_period_s.value or 0.0):g} µs")]
+        if dyn.gain_limits:
+            rows.append(["gain ranges", "; ".join(f"{k} {a:g}–{b:g}" for k, (a, b) in dyn.gain_limits.items()),
+                         dyn.gain_limits_source])
+    if s.measured_band_hz is not None:
+        lo, hi = s.measured_band_hz
+        limit = "" if s.crossover_limit_hz is None else f"; crossover limit {s.crossover_limit_hz:.0f} Hz"
+        rows.append(["measured band", f"{lo:g}–{hi:g} Hz{limit}", s.measured_band_source])
+    if s.limit is not None:
+        rows.append(["bandwidth limited by", s.limit.factor.value, s.limit.detail])
+    if not rows:
+        return ""
+    return ("<h3>The drive's loop, as designed for</h3>" + _table(rows, ["figure", "value", "from"])
+            + "<p>The margins must hold with these figures and over the uncertainty set around them (below). "
+              "Figures marked confirm are not from the drive's own manual.</p>")
 
 
 def _margins_table(tuning: TuningOutcome) -> str:
@@ -743,11 +784,31 @@ def _margins_table(tuning: TuningOutcome) -> str:
                         _margin(vm.gain_margin_db, " dB", f"{ver_keys[key]}.gain_margin_db", gm_req if required else None),
                         vm.stable]
         rows.append(row)
+    rb = s.robust
+    if rb is not None:
+        row = ["velocity loop, worst case over the uncertainty set",
+               _margin(rb.phase_margin_deg, "°", "robust.phase_margin_deg", pm_req),
+               _margin(rb.gain_margin_db, " dB", "robust.gain_margin_db", gm_req), None, rb.stable]
+        if not same:
+            row += [None, None, None]
+        rows.append(row)
     note = (f"Required on the velocity loop: phase margin ≥ {pm_req:g}°, gain margin ≥ {gm_req:g} dB "
             f"(preset {s.preset.value if hasattr(s.preset, 'value') else s.preset}; the design keeps a guard on the "
             "identified model). ")
     note += ("The verification ran on the identified model: its margins are these." if same else
-             "The verification plant is another machine (the simulator's true plant): its own margins are beside.")
+             f"The verification plant is another machine ({v.plant_note or 'not the design model'}): its own "
+             "margins are beside.")
+    if rb is not None:
+        unc = rb.uncertainty
+
+        def each(xs: Sequence[float]) -> str:
+            return "/".join(f"{x:g}" for x in xs)
+
+        note += (f" Worst case over {rb.members} members (current loop ×{each(unc.current_loop_factors)}, "
+                 f"delay +{each(unc.extra_delay_samples)} samples, J_l ×{each(unc.load_inertia_factors)}, "
+                 f"K ×{each(unc.stiffness_factors)}, ε ×{each(unc.backlash_factors)}): phase margin set by "
+                 f"{rb.phase_member.describe(rb.current_loop_hz)}; gain margin by "
+                 f"{rb.gain_member.describe(rb.current_loop_hz)}.")
     return _table(rows, header) + f"<p>{_e(note)}</p>"
 
 
@@ -802,6 +863,7 @@ def _plant_rows(pp: PlantParameters) -> list[tuple[Any, ...]]:
         rows += [("Coulomb friction, motor", pp.coulomb_motor_nm, "N·m"), ("Coulomb friction, load", pp.coulomb_load_nm, "N·m")]
     rows.append(("current loop", "ideal" if pp.current_loop_bandwidth_hz is None
                  else f"{pp.current_loop_bandwidth_hz:g} Hz", ""))
+    rows.append(("computation delay", float(pp.delay_samples), "samples"))
     return rows
 
 
@@ -864,8 +926,8 @@ def render_report(
             parts.append("<h3>Design notes</h3><ul>" + "".join(f"<li>{_e(n)}</li>" for n in s.notes) + "</ul>")
         parts.append('<h2 id="verification">Verification</h2>')
         plant = v.plant
-        where = ("the simulator's true machine (not the identified model)" if true_plant is not None
-                 else "the identified model with its backlash (the true machine is not known on a real axis)")
+        where = v.plant_note or ("the simulator's true machine (not the identified model)" if true_plant is not None
+                                 else "the identified model with its backlash")
         parts.append(f"<p>Closed-loop runs at {s.sample_rate_hz:g} Hz on {_e(where)}, each from rest with the "
                      "gears centred in the gap.</p>")
         parts.append("<details><summary>verification plant</summary>"

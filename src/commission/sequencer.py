@@ -78,17 +78,21 @@ class TuningOutcome:
 
 
 def tune_and_export(out_dir: Path, identification: Any, options: Any, description: Any | None,
-                    true_plant: PlantParameters | None = None) -> TuningOutcome:
+                    true_plant: PlantParameters | None = None,
+                    excitation_band_hz: tuple[float, float] | None = None) -> TuningOutcome:
     """Design the controller from the identification, verify it in closed loop and write
     ``controller.json`` (and ``controller-<drive>.yaml`` with a drive description).
 
+    :param description: the drive's description: its loop structure and parameter map.
     :param true_plant: the simulator's plant on simulated runs (the caller knows it ran one): the
         settings are then verified on the true machine; otherwise on the identified model with its
         backlash.
+    :param excitation_band_hz: the band the experiment swept (the design's measured band when the
+        identification states none).
     """
     from .tuning import controller_json, design, verify, write_controller_files
 
-    settings = design(identification, options)
+    settings = design(identification, options, description=description, excitation_band_hz=excitation_band_hz)
     if true_plant is not None:
         verification = verify(settings, true_plant, options)
     else:
@@ -178,6 +182,7 @@ class Sequencer:
     :param tune: design and verify controller settings after the identification.
     :param true_plant: the simulator's plant (a ``--sim`` run), to verify the settings on the
         true machine; it is also stored in the log's recording metadata (:data:`SIMULATED_PLANT`).
+    :param description: the drive description the tuning uses (default: the drive's own).
     """
 
     def __init__(
@@ -190,6 +195,7 @@ class Sequencer:
         identify: Identifier | None = None,
         tune: bool = True,
         true_plant: PlantParameters | None = None,
+        description: Any | None = None,
     ) -> None:
         self.config = config
         self.drive = drive
@@ -198,6 +204,7 @@ class Sequencer:
         self.identify = identify
         self.tune = tune
         self.true_plant = true_plant
+        self.description = description if description is not None else getattr(drive, "description", None)
 
     def _check_drive(self) -> None:
         state = self.drive.state
@@ -226,8 +233,9 @@ class Sequencer:
             files.append(write_result(self.out_dir, identification, str(log_path)))
             add_identification_to_log(log_path, identification)
             if self.tune:
-                tuning = tune_and_export(self.out_dir, identification, self.config.tuning,
-                                         getattr(self.drive, "description", None), self.true_plant)
+                exc = self.config.excitation
+                tuning = tune_and_export(self.out_dir, identification, self.config.tuning, self.description,
+                                         self.true_plant, (exc.f_start_hz, exc.f_end_hz))
                 files += tuning.files
         report = write_run_report(self.out_dir, recording, identification, config_to_dict(self.config),
                                   str(log_path), files, tuning, true_plant=self.true_plant)
@@ -245,6 +253,16 @@ class Sequencer:
         log_path = self.out_dir / CHECK_LOG_NAME
         recording = self._experiment(waveform, Mode.CYCLIC_SYNC_VELOCITY, log_path, label="backlash check")
         return recording, backlash_from_reversals(recording), log_path
+
+    def closed_loop_check(self, velocity_rad_s: Any, log_name: str) -> Recording:
+        """A short closed-loop check of the drive's own velocity loop (``--apply``'s stages): the
+        velocity reference checked against the envelope, played in velocity mode and recorded
+        (logged to ``log_name`` in the output folder), the drive stopped and disabled after it."""
+        rate = self.config.excitation.sample_rate_hz
+        waveform = Waveform(velocity_rad_s, rate, "closed-loop check: velocity step and reversal")
+        check_velocity_envelope(waveform.samples, rate, self.config.safety)
+        self._check_drive()
+        return self._experiment(waveform, Mode.CYCLIC_SYNC_VELOCITY, self.out_dir / log_name, label="loop check")
 
     def _experiment(self, waveform: Waveform, mode: Mode, log_path: Path, label: str = "excitation") -> Recording:
         """limits → enable → play → safe stop on every path → log (partial after an abort)."""

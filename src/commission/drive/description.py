@@ -58,7 +58,8 @@ def parameter_raw(spec: ParameterSpec | ModbusParameter, name: str, value: float
     return raw
 
 __all__ = [
-    "DRIVERS_ENV", "ChannelUnit", "DriveDescription", "ExcitationMethod", "ObjectRef", "ParameterSpec",
+    "DRIVERS_ENV", "ChannelUnit", "DriveDescription", "ExcitationMethod", "LoopSpec", "ObjectRef", "ParameterSpec",
+    "SourcedValue",
     "TraceChannel", "drivers_dir", "list_drives", "load_description",
     "ModbusParameter", "ModbusRegister", "ModbusRegisters", "ModbusSpec", "ModbusString", "ModbusTrace",
     "ModbusTraceChannel", "ModbusWaveform",
@@ -175,6 +176,35 @@ class ParameterSpec(_Model):
     max: float | None = None
     maps_to: str = Field("", description="what a tuning result writes here")
     note: str = ""
+
+
+class SourcedValue(_Model):
+    """One figure of the drive's loop structure, with where it comes from (``{value, source}``)."""
+
+    value: float = Field(ge=0)
+    source: str = Field(min_length=1, description="where the figure comes from: the manual's section, "
+                        "a catalogue, or 'assumed: …'")
+    confirm: bool = Field(False, description="true where the figure is not from the drive's own manual: "
+                          "confirm it before relying on it")
+
+
+class LoopSpec(_Model):
+    """The drive's own control loops (``loop:``), what the tuning needs and a record cannot always show.
+
+    Each figure is optional; the tuning states a conservative assumption for what is missing.
+    The gain ranges are the parameter map's (``parameters:``, min/max in each parameter's unit).
+    """
+
+    current_loop_bandwidth_hz: SourcedValue | None = Field(
+        None, description="closed current (torque) loop bandwidth, as a first-order lag [Hz]")
+    velocity_loop_period_s: SourcedValue | None = Field(None, description="velocity-loop sample period [s]")
+    position_loop_period_s: SourcedValue | None = Field(None, description="position-loop sample period [s]")
+    computation_delay_s: SourcedValue | None = Field(
+        None, description="from the velocity sample to the torque reference reaching the current loop, beyond "
+        "the zero-order hold's own sample [s]")
+    encoder_delay_s: SourcedValue | None = Field(
+        None, description="from the position's instant to its use in the velocity loop (serial encoder "
+        "transmission) [s]")
 
 
 class UnitsSpec(_Model):
@@ -351,6 +381,7 @@ class DriveDescription(_Model):
     units: UnitsSpec = UnitsSpec()
     error_codes: dict[int, str] = Field(default_factory=dict, description="0x603F / EMCY code -> text")
     parameters: dict[str, ParameterSpec] = Field(default_factory=dict)
+    loop: LoopSpec = Field(LoopSpec(), description="the drive's own loop structure, for the tuning")
     modbus: ModbusSpec | None = Field(None, description="Modbus RTU register map (inline, or modbus.yaml beside)")
     folder: Path = Field(Path("."), exclude=True)
 

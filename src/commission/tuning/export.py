@@ -30,7 +30,7 @@ from .settings import ControllerSettings, TuningError
 
 __all__ = [
     "PARAMETER_TOPIC", "ApplyReport", "ParameterValue", "apply", "controller_json", "drive_parameters",
-    "restore_values", "write_controller_files",
+    "restore_values", "write_controller_files", "write_values",
 ]
 
 #: MCAP topic of the write-back log (old values, every write, store).
@@ -50,8 +50,11 @@ def controller_json(settings: ControllerSettings, verification: Any | None = Non
     s = settings
     ready = bool(s.meets_margins and (verification is None or verification.ready))
     reasons: list[str] = []
-    if not s.meets_margins:
+    pm, gm = s.required_phase_margin_deg, s.required_gain_margin_db
+    if not (s.margins.meets(pm, gm) and (s.margins_gap is None or s.margins_gap.meets(pm, gm))):
         reasons.append("the settings do not meet the required margins on the identified model")
+    if s.robust is not None:
+        reasons += s.robust.reasons()
     if verification is not None:
         reasons += list(verification.reasons)
     doc: dict[str, Any] = {
@@ -93,8 +96,17 @@ def controller_json(settings: ControllerSettings, verification: Any | None = Non
                     "required_gain_margin_db": s.required_gain_margin_db,
                     "gap": None if s.margins_gap is None else s.margins_gap.as_dict(),
                     "model": "identified, contact (gap: motor alone)"},
+        "robust": None if s.robust is None else s.robust.as_dict(),
+        "bandwidth_limit": None if s.limit is None else s.limit.as_dict(),
+        "measured_band": {"band_hz": None if s.measured_band_hz is None else list(s.measured_band_hz),
+                          "source": s.measured_band_source, "crossover_limit_hz": s.crossover_limit_hz,
+                          "crossover_hz": _f(s.margins.crossover_hz),
+                          "inside": (s.crossover_limit_hz is None or not math.isfinite(s.margins.crossover_hz)
+                                     or s.margins.crossover_hz <= s.crossover_limit_hz * (1.0 + 1e-6))},
         "drive_model": {"current_loop_bandwidth_hz": s.current_loop_bandwidth_hz,
-                        "computation_delay_samples": s.computation_delay_samples},
+                        "loop_delay_samples": s.loop_delay_samples,
+                        "position_loop_delay_samples": s.position_loop_delay_samples,
+                        **({} if s.dynamics is None else {"sources": s.dynamics.as_dict()})},
         "modes": {"f_resonance_hz": _f(s.resonance_hz), "f_antiresonance_hz": _f(s.antiresonance_hz)},
         "design": {"candidates": list(s.candidates), "notes": list(s.notes)},
         "verification": {"ready": ready, "reasons": reasons},
@@ -301,20 +313,8 @@ def apply(drive: Any, parameters: Sequence[ParameterValue], *, yes: bool = False
     drive_name = getattr(description, "name", type(drive).__name__)
     _log({"event": "old_values", "drive": drive_name,
           "values": [{"name": p.name, "value": old[p.name], "unit": p.unit, "object": p.object} for p in parameters]})
-    written: dict[str, float] = {}
-    back: dict[str, float] = {}
-    for p in parameters:
-        _log({"event": "write", "drive": drive_name, "name": p.name, "value": p.value, "unit": p.unit,
-              "raw": p.raw, "object": p.object, "old": old[p.name]})
-        drive.write_parameter(p.name, p.value)
-        written[p.name] = p.value
-        got = float(drive.read_parameter(p.name))
-        back[p.name] = got
-        spec = description.parameters[p.name] if description is not None else None
-        ok = _close(got, p.value, spec) if spec is not None else math.isclose(got, p.value, rel_tol=1e-6)
-        _log({"event": "read_back", "drive": drive_name, "name": p.name, "value": got, "ok": ok})
-        if not ok:
-            raise DriveError(f"{p.name}: wrote {p.value:g} {p.unit}, read back {got:g}")
+    back = write_values(drive, parameters, old=old, log=log, drive_name=drive_name)
+    written = {p.name: p.value for p in parameters}
     stored = False
     if store:
         _log({"event": "store", "drive": drive_name, "object": str(description.parameters[STORE_PARAMETER].object)})
@@ -322,6 +322,31 @@ def apply(drive: Any, parameters: Sequence[ParameterValue], *, yes: bool = False
         stored = True
     echo(f"{len(written)} parameters written and verified" + ("; stored to non-volatile memory" if stored else ""))
     return ApplyReport(applied=True, old=old, written=written, read_back=back, stored=stored)
+
+
+def write_values(drive: Any, parameters: Sequence[ParameterValue], *, old: Mapping[str, float], log: Log | None,
+                 drive_name: str) -> dict[str, float]:
+    """Write each value, read it back and compare, logging every write and read-back on
+    :data:`PARAMETER_TOPIC`; returns the values read back.
+
+    :raises DriveError: a read-back differs (the writes before it stay).
+    """
+    description = getattr(drive, "description", None)
+    back: dict[str, float] = {}
+    for p in parameters:
+        if log is not None:
+            log(PARAMETER_TOPIC, {"event": "write", "drive": drive_name, "name": p.name, "value": p.value,
+                                  "unit": p.unit, "raw": p.raw, "object": p.object, "old": old.get(p.name)})
+        drive.write_parameter(p.name, p.value)
+        got = float(drive.read_parameter(p.name))
+        back[p.name] = got
+        spec = description.parameters.get(p.name) if description is not None else None
+        ok = _close(got, p.value, spec) if spec is not None else math.isclose(got, p.value, rel_tol=1e-6)
+        if log is not None:
+            log(PARAMETER_TOPIC, {"event": "read_back", "drive": drive_name, "name": p.name, "value": got, "ok": ok})
+        if not ok:
+            raise DriveError(f"{p.name}: wrote {p.value:g} {p.unit}, read back {got:g}")
+    return back
 
 
 def restore_values(results: Mapping[str, Sequence[Mapping[str, Any]]] | str | Path,
