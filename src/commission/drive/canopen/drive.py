@@ -333,7 +333,9 @@ class CanopenDrive(Drive):
 
         vendor_id = optional(VENDOR_ID)
         name = optional(DEVICE_NAME) or self.node.object_dictionary.device_information.product_name or ""
-        vendor = self.node.object_dictionary.device_information.vendor_name or ""
+        claimed = self.description.identity is not None and self.description.identity.vendor_id == vendor_id
+        # a generic description's EDS names no vendor ("any"): then only the drive's own id says who it is
+        vendor = (self.node.object_dictionary.device_information.vendor_name or "") if claimed else "vendor"
         self.identity = {
             "vendor_id": vendor_id, "product_code": optional(PRODUCT_CODE),
             "revision": optional(REVISION), "serial": optional(SERIAL),

@@ -115,7 +115,7 @@ class BusBudget:
         return (
             f"{self.rate_hz:.0f} Hz cycle ({self.cycle_s * 1e6:.0f} us, {self.frames_per_cycle} frames per cycle, "
             f"{self.bits_per_cycle} bit worst case, bus load {self.load:.0%} of {self.bitrate_bps / 1e3:g} kbit/s "
-            f"incl. {self.background_bps / 1e3:.0f} kbit/s other traffic{line}; limited by {self.limited_by}) "
+            f"incl. {self.background_bps / 1e3:.1f} kbit/s of heartbeats and other traffic{line}; limited by {self.limited_by}) "
             f"-> usable band {self.usable_band_hz:.0f} Hz"
         )
 
