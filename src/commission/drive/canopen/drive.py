@@ -107,8 +107,9 @@ LISTEN_S = 0.2
 MAX_LOST_FRACTION = 0.2
 #: ... or when the link was silent this long in one piece [s]
 MAX_GAP_S = 0.1
-#: ... or when more of the changing setpoints than this arrived late (the excitation is then not the chirp)
-MAX_HELD_FRACTION = 0.5
+#: ... or when more of the changing setpoints than this came two or more cycles late: the excitation then
+#: stood still in places instead of playing the chirp (one cycle late is harmless: the record says so)
+MAX_STALLED_FRACTION = 0.25
 #: a drive that produces no SYNC for this many periods (and at least SYNC_SILENCE_S) has stopped
 SYNC_SILENCE_PERIODS = 100
 SYNC_SILENCE_S = 0.3
@@ -335,7 +336,7 @@ class CanopenDrive(Drive):
         name = optional(DEVICE_NAME) or self.node.object_dictionary.device_information.product_name or ""
         claimed = self.description.identity is not None and self.description.identity.vendor_id == vendor_id
         # a generic description's EDS names no vendor ("any"): then only the drive's own id says who it is
-        vendor = (self.node.object_dictionary.device_information.vendor_name or "") if claimed else "vendor"
+        vendor = (self.node.object_dictionary.device_information.vendor_name or "") if claimed else ""
         self.identity = {
             "vendor_id": vendor_id, "product_code": optional(PRODUCT_CODE),
             "revision": optional(REVISION), "serial": optional(SERIAL),
@@ -346,7 +347,7 @@ class CanopenDrive(Drive):
         serial = self.identity["serial"]
         self._info = DriveInfo(
             backend="canopen",
-            vendor=vendor if vendor_id is None else f"{vendor} (0x{vendor_id:08X})".strip(),
+            vendor=vendor if vendor_id is None else f"{vendor} (0x{vendor_id:08X})" if vendor else f"vendor 0x{vendor_id:08X}",
             product=str(name),
             serial_number="" if serial is None else str(serial),
             firmware=str(optional(SOFTWARE_VERSION) or ""),
@@ -647,9 +648,11 @@ class CanopenDrive(Drive):
                 raise DriveError(f"drive left 'operation enabled' during the run: it is '{state.value}'")
             last = streamer.last_sync_monotonic
             if last is None or time.monotonic() - last > silence_s:
-                waited = "no SYNC at all" if last is None else f"no SYNC for {time.monotonic() - last:.2f} s"
-                raise DriveTimeout(f"the drive stopped keeping the streamed cycle ({waited}, after {k / rate:.3f} s "
-                                   f"of {total / rate:.3g} s)")
+                link = "the slcan adapter's serial line" if self.interface == "slcan" else "the bus"
+                raise DriveTimeout(
+                    f"no SYNC reached the host for {time.monotonic() - (last or 0):.2f} s (after {k / rate:.3f} s of "
+                    f"{total / rate:.3g} s): the drive stopped keeping the cycle, or {link} or this host cannot "
+                    f"carry the {rate:.0f} Hz cycle; try --rate {rate / 2:.0f}")
 
         switch = sys.getswitchinterval()
         sys.setswitchinterval(min(switch, 2e-4))  # the notifier thread must get the GIL within a cycle
@@ -693,11 +696,11 @@ class CanopenDrive(Drive):
                 f"{via} or this host did not carry the {rate:.0f} Hz cycle's feedback; try {lower}"
                 + ("" if self.line_bps or self.interface != "slcan" else " or tell the serial line's speed")
             )
-        if report.held_fraction > MAX_HELD_FRACTION:
+        if report.stalled_fraction > MAX_STALLED_FRACTION:
             raise DriveError(
-                f"{report.held_fraction:.0%} of setpoints late (the drive held the previous one): this host cannot "
-                f"stream at {rate:.0f} Hz (response p99 {report.latency_p99_s * 1e3:.1f} ms of a "
-                f"{1e3 / rate:.1f} ms cycle); try {lower} or a drive with a trace"
+                f"{report.stalled_fraction:.0%} of setpoints more than one cycle late (the drive held older ones): "
+                f"this host cannot stream at {rate:.0f} Hz (SYNC arrival jitter up to "
+                f"{report.sync_jitter_max_s * 1e3:.0f} ms); try {lower} or a drive with a trace"
             )
 
     def _streamed_recording(self) -> Recording | None:

@@ -188,14 +188,18 @@ class StreamReport:
     longest_gap_cycles: int
     """the longest run of consecutive lost cycles."""
     held_cycles: int
-    """cycles in which the drive applied the previous setpoint because the host's arrived late."""
+    """cycles in which the drive applied an older setpoint because the host's arrived late."""
+    stalled_cycles: int
+    """of those, cycles whose applied setpoint was older than the previous cycle's (the host missed
+    two or more SYNCs in a row: the excitation stood still there)."""
     changing_cycles: int
     """cycles whose setpoint differed from the one before (only there a held setpoint shows)."""
     sync_jitter_rms_s: float
     """RMS deviation of the SYNC arrival intervals at the host from the period (bus + host delays)."""
     sync_jitter_max_s: float
     latency_median_s: float
-    """host response: SYNC on the bus to the setpoint sent, median."""
+    """host response: the SYNC frame's time stamp to the setpoint sent, median (the time stamp is the
+    bus's on SocketCAN and the virtual bus; an slcan adapter's frames are stamped on arrival at the host)."""
     latency_p99_s: float
     latency_max_s: float
     budget: BusBudget
@@ -209,11 +213,16 @@ class StreamReport:
         """Held setpoints as a fraction of the cycles where holding one makes a difference."""
         return self.held_cycles / self.changing_cycles if self.changing_cycles else 0.0
 
+    @property
+    def stalled_fraction(self) -> float:
+        return self.stalled_cycles / self.changing_cycles if self.changing_cycles else 0.0
+
     def describe(self) -> str:
         return (
             f"streamed CST on the drive's clock: {self.cycles} cycles at {self.planned_rate_hz:.0f} Hz; "
             f"{self.lost_cycles} lost ({self.lost_fraction:.1%}, longest gap {self.longest_gap_cycles}); "
-            f"{self.held_cycles} setpoints late, held by the drive ({self.held_fraction:.1%} of changing ones); "
+            f"{self.held_cycles} setpoints late, the previous one held by the drive ({self.held_fraction:.1%} of "
+            f"changing ones; {self.stalled_cycles} more than one cycle late); "
             f"SYNC arrival jitter rms {self.sync_jitter_rms_s * 1e6:.0f} us, max {self.sync_jitter_max_s * 1e6:.0f} us; "
             f"host response median {self.latency_median_s * 1e6:.0f} us, p99 {self.latency_p99_s * 1e6:.0f} us, "
             f"max {self.latency_max_s * 1e6:.0f} us"
@@ -373,6 +382,8 @@ class SyncedStream:
         changing = known.copy()
         changing[1:] &= targets[1:] != targets[:-1]
         held = changing & (applied != targets)
+        previous = np.concatenate(([0], targets[:-1]))
+        stalled = held & (applied != previous)
         t = rec.sync_time[: n + 1]
         dt = np.diff(t)
         dt = dt[np.isfinite(dt)]
@@ -384,6 +395,7 @@ class SyncedStream:
         return StreamReport(
             planned_rate_hz=budget.rate_hz, cycles=n, lost_cycles=int(lost.sum()),
             longest_gap_cycles=int(runs.max()) if runs.size else 0, held_cycles=int(held.sum()),
+            stalled_cycles=int(stalled.sum()),
             changing_cycles=int(changing.sum()), sync_jitter_rms_s=float(np.sqrt(np.mean(jitter**2))),
             sync_jitter_max_s=float(np.max(np.abs(jitter))), latency_median_s=float(np.median(lat)),
             latency_p99_s=float(np.percentile(lat, 99)), latency_max_s=float(np.max(lat)), budget=budget,

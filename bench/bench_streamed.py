@@ -1,0 +1,173 @@
+"""The host-streamed CiA 402 path under a busy host: success count and spread against the direct run.
+
+What a technician would type, each run a fresh process, with a CPU-bound process
+(``while True: pass``) running beside every run:
+
+1. ``commission --sim --json`` once, without the hog: the reference (the plant stepped
+   directly, 8 kHz trace);
+2. ``commission --sim --sim-link canopen --drive generic-cia402 --json`` N times: the
+   simulated drive as a CANopen node on the in-process virtual bus, streamed CST at
+   the rate the bus allows, on the drive's clock;
+3. over an slcan adapter in another process (``python -m sim_drive --slcan``, a fresh
+   one per run): ``commission --port PTY --interface slcan`` without ``--drive`` (the
+   description picked from the drive's identity) and with ``--drive generic-cia402``
+   (streamed through the adapter), M times each.
+
+A run counts when it exits 0 and ε is within ±0.02° and J_m, J_l, K within ±2 % of the
+reference. Printed: the count, the spread of each deviation (min / median / max), the
+stream figures (lost cycles, late setpoints, host response p99), and the wall time.
+
+Run: python bench/bench_streamed.py [--runs 20] [--slcan-runs 5] [--no-hog] [--tune]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+EPS_TOL_DEG = 0.02
+REL_TOL = 0.02
+PY = sys.executable
+
+
+def commission(args: list[str], out: Path, tune: bool) -> tuple[int, dict | None, str, float]:
+    cmd = [PY, "-m", "commission.cli", *args, "--json", "--out", str(out)] + ([] if tune else ["--no-tune"])
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    wall = time.perf_counter() - t0
+    doc = None
+    if proc.returncode == 0:
+        try:
+            doc = json.loads(proc.stdout)
+        except json.JSONDecodeError:
+            doc = None
+    err = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else ""
+    return proc.returncode, doc, err, wall
+
+
+def figures(doc: dict) -> dict[str, float]:
+    ident = doc["identification"]
+    tm = ident["two_mass"]
+    return {"eps_deg": ident["backlash"]["epsilon_deg"], "J_m": tm["J_m"], "J_l": tm["J_l"], "K": tm["K"]}
+
+
+def deviations(f: dict[str, float], ref: dict[str, float]) -> dict[str, float]:
+    return {"eps_deg": f["eps_deg"] - ref["eps_deg"],
+            **{k: f[k] / ref[k] - 1 for k in ("J_m", "J_l", "K")}}
+
+
+def within(dev: dict[str, float]) -> bool:
+    return abs(dev["eps_deg"]) <= EPS_TOL_DEG and all(abs(dev[k]) <= REL_TOL for k in ("J_m", "J_l", "K"))
+
+
+def stream_figures(doc: dict) -> str:
+    s = doc.get("recording", {}).get("stream", "")
+    lost = re.search(r"(\d+) lost", s)
+    held = re.search(r"held by the drive \(([\d.]+)%", s)
+    p99 = re.search(r"p99 (\d+) us", s)
+    if not lost:
+        return "trace"
+    return f"lost {lost.group(1)}, late {held.group(1) if held else '?'} %, p99 {int(p99.group(1)) / 1e3 if p99 else 0:.1f} ms"
+
+
+class Hog:
+    """A CPU-bound process beside the run (ended by its own pid)."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.proc = subprocess.Popen([PY, "-c", "while True: pass"]) if enabled else None
+
+    def close(self) -> None:
+        if self.proc is not None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+class SlcanDrive:
+    """``python -m sim_drive --slcan`` in its own process; its first stdout line is the pty."""
+
+    def __init__(self, extra: list[str]) -> None:
+        self.proc = subprocess.Popen([PY, "-m", "sim_drive", "--slcan", *extra], stdout=subprocess.PIPE,
+                                     stderr=subprocess.DEVNULL, text=True)
+        assert self.proc.stdout is not None
+        self.port = self.proc.stdout.readline().strip()
+
+    def close(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+
+def series(label: str, runs: int, args_for_run, ref: dict[str, float], tmp: Path, tune: bool, hog: bool,
+           sim_extra: list[str] | None = None) -> int:
+    print(f"\n{label}: {runs} runs{' beside a CPU hog' if hog else ''}")
+    devs, walls, ok = [], [], 0
+    for i in range(runs):
+        sim = SlcanDrive(sim_extra or []) if sim_extra is not None else None
+        h = Hog(hog)
+        try:
+            code, doc, err, wall = commission(args_for_run(sim), tmp / f"{label.split()[0]}-{i}", tune)
+        finally:
+            h.close()
+            if sim is not None:
+                sim.close()
+        walls.append(wall)
+        if code != 0 or doc is None:
+            print(f"  run {i + 1:>2}: FAILED (exit {code}) {err}")
+            continue
+        dev = deviations(figures(doc), ref)
+        good = within(dev)
+        ok += good
+        devs.append(dev)
+        print(f"  run {i + 1:>2}: {'ok ' if good else 'OUT'} Δε {dev['eps_deg']:+.4f}°  ΔJ_m {dev['J_m']:+.3%}  "
+              f"ΔJ_l {dev['J_l']:+.3%}  ΔK {dev['K']:+.3%}  ({stream_figures(doc)}; {wall:.0f} s)")
+    print(f"  {label}: {ok} of {runs} within ε ±{EPS_TOL_DEG}° and J_m, J_l, K ±{REL_TOL:.0%} of the direct run")
+    if devs:
+        for key, unit in (("eps_deg", "°"), ("J_m", "%"), ("J_l", "%"), ("K", "%")):
+            v = np.array([d[key] for d in devs]) * (1 if unit == "°" else 100)
+            print(f"    spread {key:<7} min {v.min():+.4f}{unit}  median {np.median(v):+.4f}{unit}  "
+                  f"max {v.max():+.4f}{unit}")
+    print(f"    wall time per run: median {np.median(walls):.0f} s")
+    return ok
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=20)
+    ap.add_argument("--slcan-runs", type=int, default=5)
+    ap.add_argument("--no-hog", action="store_true")
+    ap.add_argument("--tune", action="store_true", help="also design and verify the controller (slower)")
+    opt = ap.parse_args()
+    hog = not opt.no_hog
+    print(f"host: {os.cpu_count()} cores; load average {os.getloadavg()[0]:.1f} before the runs")
+    with tempfile.TemporaryDirectory(prefix="bench-streamed-") as d:
+        tmp = Path(d)
+        code, doc, err, wall = commission(["--sim"], tmp / "direct", opt.tune)
+        if code != 0 or doc is None:
+            raise SystemExit(f"the direct run failed: {err}")
+        ref = figures(doc)
+        print(f"reference (commission --sim, {wall:.0f} s): ε {ref['eps_deg']:.5f}°  J_m {ref['J_m']:.6g}  "
+              f"J_l {ref['J_l']:.6g}  K {ref['K']:.6g}")
+        series("canopen streamed (--sim --sim-link canopen --drive generic-cia402)", opt.runs,
+               lambda _: ["--sim", "--sim-link", "canopen", "--drive", "generic-cia402"], ref, tmp, opt.tune, hog)
+        if opt.slcan_runs:
+            series("slcan, no --drive (identity -> sim: trace)", opt.slcan_runs,
+                   lambda sim: ["--port", sim.port, "--interface", "slcan"], ref, tmp, opt.tune, hog, [])
+            series("slcan streamed (--drive generic-cia402)", opt.slcan_runs,
+                   lambda sim: ["--port", sim.port, "--interface", "slcan", "--drive", "generic-cia402"],
+                   ref, tmp, opt.tune, hog, [])
+
+
+if __name__ == "__main__":
+    main()
