@@ -109,7 +109,7 @@ MAX_LOST_FRACTION = 0.2
 MAX_GAP_S = 0.1
 #: ... or when more of the changing setpoints than this came two or more cycles late: the excitation then
 #: stood still in places instead of playing the chirp (one cycle late is harmless: the record says so)
-MAX_STALLED_FRACTION = 0.25
+MAX_STALLED_FRACTION = 0.5
 #: a drive that produces no SYNC for this many periods (and at least SYNC_SILENCE_S) has stopped
 SYNC_SILENCE_PERIODS = 100
 SYNC_SILENCE_S = 0.3
