@@ -107,9 +107,10 @@ LISTEN_S = 0.2
 MAX_LOST_FRACTION = 0.2
 #: ... or when the link was silent this long in one piece [s]
 MAX_GAP_S = 0.1
-#: ... or when more of the changing setpoints than this came two or more cycles late: the excitation then
-#: stood still in places instead of playing the chirp (one cycle late is harmless: the record says so)
-MAX_STALLED_FRACTION = 0.5
+#: ... or when more of the changing setpoints than this came two or more cycles late: the host then hardly
+#: streamed at all. Late setpoints cost no accuracy while the record says what was applied (bench_streamed.py
+#: measures it), so only a host that practically never answered in time fails here.
+MAX_STALLED_FRACTION = 0.9
 #: a drive that produces no SYNC for this many periods (and at least SYNC_SILENCE_S) has stopped
 SYNC_SILENCE_PERIODS = 100
 SYNC_SILENCE_S = 0.3
