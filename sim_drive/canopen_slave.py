@@ -452,7 +452,7 @@ class CanopenSlave:
         self.node.sdo.muted = True
         self.node.nmt.stop_heartbeat()
         self._tpdos = []
-        self._stop_clock()
+        self._stop_clock(join=False)  # may run under the lock (a fault seen by the clock itself)
 
     def stall_sdo(self, index: int) -> None:
         """Requests for ``index`` are never answered (heartbeat and other objects continue)."""
@@ -835,17 +835,18 @@ class CanopenSlave:
     def _start_clock(self) -> None:
         if self._clock is not None and self._clock.is_alive() and not self._clock_stop.is_set():
             return
-        if self._clock is not None:
-            self._clock.join(timeout=1)
+        # a stopped clock thread ends by itself at its next cycle (it checks its own event under the
+        # lock, which the caller holds): joining it here would wait for that lock
         self._clock_stop = threading.Event()
         self._clock = threading.Thread(target=self._produce, args=(self._clock_stop,),
                                        name=f"sim-drive-{self.node_id}-clock", daemon=True)
         self._clock.start()
 
-    def _stop_clock(self) -> None:
+    def _stop_clock(self, join: bool = True) -> None:
+        """Stop producing SYNC; ``join`` waits for the thread (never while holding the lock)."""
         self._clock_stop.set()
         clock = self._clock
-        if clock is not None and clock is not threading.current_thread():
+        if join and clock is not None and clock is not threading.current_thread():
             clock.join(timeout=1)
         self._clock = None
 

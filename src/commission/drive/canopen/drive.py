@@ -61,6 +61,7 @@ from .pdo import (
     frame_bits,
     interpolation_period,
     plan_cycle,
+    record_signals,
     slcan_line_bytes,
     waveform_band_hz,
 )
@@ -111,9 +112,9 @@ MAX_GAP_S = 0.1
 #: streamed at all. Late setpoints cost no accuracy while the record says what was applied (bench_streamed.py
 #: measures it), so only a host that practically never answered in time fails here.
 MAX_STALLED_FRACTION = 0.9
-#: a drive that produces no SYNC for this many periods (and at least SYNC_SILENCE_S) has stopped
-SYNC_SILENCE_PERIODS = 100
-SYNC_SILENCE_S = 0.3
+#: a drive whose SYNCs stay away this long (and four heartbeat consumer times) has stopped keeping the cycle
+#: [s]. Not a safety limit (the heartbeats are): a loaded host may itself not read the bus for a while.
+SYNC_SILENCE_S = 2.0
 
 
 class CanopenDrive(Drive):
@@ -485,7 +486,14 @@ class CanopenDrive(Drive):
                     self._sync_overflow = 0  # SYNCs without a counter: cycles are counted on arrival
             self.sdo.write(CYCLE_PERIOD, period_us)
         except DriveError as err:
-            raise DriveError(f"node {self.node_id} refused to keep a {period_us} us cycle (0x1005/0x1006): {err}") from err
+            raise DriveError(f"node {self.node_id} refused to keep a {period_us} us cycle (0x1006/0x1019): {err}") from err
+        try:  # that it will produce SYNC, now, before anything moves (no PDO runs before NMT start)
+            self._sync_producer_on(True)
+            self._sync_producer_on(False)
+        except DriveError as err:
+            raise DriveError(
+                f"node {self.node_id} will not produce SYNC (0x1005 bit 30): {err}; streaming needs the drive to keep "
+                "the cycle (a host cannot keep sub-millisecond deadlines): use a drive with a trace buffer") from err
 
     def _sync_producer_on(self, on: bool) -> None:
         self.sdo.write(SYNC_COB, SYNC_COB_ID | (SYNC_PRODUCER if on else 0))
@@ -634,7 +642,7 @@ class CanopenDrive(Drive):
         self._run_total = total
         self._start_time = datetime.now(timezone.utc)
         self.stream_report = None
-        silence_s = max(SYNC_SILENCE_S, SYNC_SILENCE_PERIODS * budget.cycle_s)
+        silence_s = max(SYNC_SILENCE_S, 4 * self.description.heartbeat_timeout_ms / 1000)
 
         def check() -> None:
             k = streamer.samples_done
@@ -721,21 +729,8 @@ class CanopenDrive(Drive):
         if n < 2 or received[1 : n + 1].sum() < 2:
             return None
         rate = budget.rate_hz
-        per_inc = 2 * math.pi / self.motor_increments
-        idx = np.arange(n + 1)
-        ok = received[: n + 1]
-        counts = rec.position[: n + 1].astype(np.float64)
-        if ok.sum() >= 4:
-            from scipy.interpolate import CubicSpline  # smooth positions across a lost cycle
-
-            counts = np.where(ok, counts, CubicSpline(idx[ok], counts[ok])(idx))
-        else:
-            counts = np.interp(idx, idx[ok], counts[ok])
-        position = counts * per_inc
-        lost = ~ok[1:]
-        torque = np.where(lost, targets[:n], rec.torque[1 : n + 1]).astype(np.float64) * (self.rated_torque_nm / 1000)
-        # the drive's position per cycle is what it measured; velocity over the cycle, as the identifier models it
-        velocity = np.diff(position) * rate
+        torque, velocity, position, lost = record_signals(
+            rec.position, rec.torque, targets[:n], received, rate, self.rated_torque_nm, self.motor_increments)
         report = self.stream_report or streamer.report(budget, n)
         metadata = {
             "link": f"canopen {self.interface}:{self.port} node {self.node_id}",
@@ -751,7 +746,7 @@ class CanopenDrive(Drive):
         if lost.any():
             metadata[LOST_SAMPLES_KEY] = encode_samples(lost)
         return Recording.uniform(
-            rate, torque, velocity, motor_position=position[1:], start_time=self._start_time, drive=self._info,
+            rate, torque, velocity, motor_position=position, start_time=self._start_time, drive=self._info,
             metadata=metadata,
         )
 

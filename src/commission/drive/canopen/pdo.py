@@ -408,3 +408,39 @@ class SyncedStream:
                 self.network.unsubscribe(cob, cb)
             except (KeyError, ValueError):
                 pass
+
+
+def record_signals(
+    counts: NDArray[np.int64],
+    applied_permille: NDArray[np.int64],
+    targets: NDArray[np.int16] | NDArray[np.int64],
+    received: NDArray[np.bool_],
+    rate_hz: float,
+    rated_torque_nm: float,
+    increments_per_rev: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """The record's signals from what the drive reported per cycle.
+
+    Inputs have one entry per cycle, index 0 being the cycle before the first sample (it gives the
+    first velocity); ``targets`` has one per sample. Lost cycles get their position from a cubic
+    spline through the received ones and the torque the host meant (the drive's is unknown there).
+
+    :returns: torque [N·m], motor velocity [rad/s] (position difference over the cycle, as the
+        identifier models a drive's velocity), motor position [rad], and the mask of lost samples.
+    """
+    n = int(np.asarray(targets).size)
+    ok = np.asarray(received[: n + 1], dtype=bool)
+    counts_f = np.asarray(counts[: n + 1], dtype=np.float64)
+    idx = np.arange(n + 1)
+    if not ok.all():
+        if ok.sum() >= 4:
+            from scipy.interpolate import CubicSpline  # smooth positions across a lost cycle
+
+            counts_f = np.where(ok, counts_f, CubicSpline(idx[ok], counts_f[ok])(idx))
+        else:
+            counts_f = np.interp(idx, idx[ok], counts_f[ok])
+    position = counts_f * (2 * math.pi / increments_per_rev)
+    lost = ~ok[1:]
+    applied = np.asarray(applied_permille[1 : n + 1], dtype=np.float64)
+    torque = np.where(lost, np.asarray(targets, dtype=np.float64), applied) * (rated_torque_nm / 1000)
+    return torque, np.diff(position) * rate_hz, position[1:], lost
