@@ -77,11 +77,12 @@ def within(dev: dict[str, float]) -> bool:
 def stream_figures(doc: dict) -> str:
     s = doc.get("recording", {}).get("stream", "")
     lost = re.search(r"(\d+) lost", s)
-    held = re.search(r"held by the drive \(([\d.]+)%", s)
+    paused = re.search(r"\((\d+) paused by late setpoints, ([\d.]+)%, longest pause (\d+)\)", s)
     p99 = re.search(r"p99 (\d+) us", s)
     if not lost:
         return "trace"
-    return f"lost {lost.group(1)}, late {held.group(1) if held else '?'} %, p99 {int(p99.group(1)) / 1e3 if p99 else 0:.1f} ms"
+    pause = f"paused {paused.group(2)} % (longest {paused.group(3)} cycles)" if paused else "paused ?"
+    return f"lost {lost.group(1)}, {pause}, host p99 {int(p99.group(1)) / 1e3 if p99 else 0:.1f} ms"
 
 
 class Hog:

@@ -26,10 +26,13 @@ Time: the waveform player runs in its own thread, as fast as the plant computes
 exactly one communication cycle (0x1006, or 0x60C2) per SYNC the drive produces,
 whenever the host's frames arrive: a setpoint that arrived after its SYNC is
 not applied, the previous one is held, and the TPDO (0x6077) says which torque
-was applied. A cycle the simulation itself falls behind in is still produced,
-late (a burst), as a drive's clock would have produced it on time, up to
-``CATCH_UP_LIMIT_S``; beyond that the clock slips (counted in
-:attr:`CanopenSlave.clock_slips`). With the host as SYNC producer the plant runs
+was applied. When the simulation itself falls behind (its thread was not
+scheduled: a real drive's clock never is), its clock slips rather than produce
+the missed cycles back to back: the host still gets a whole cycle to answer
+each SYNC, as from a drive on time, and the plant still runs one cycle per SYNC
+(slips counted in :attr:`CanopenSlave.clock_slips`, beyond ``SLIP_AFTER`` of a cycle).
+Likewise a cycle waits for frames that are on the virtual bus but not yet taken by
+the node's receive thread (``RX_CATCH_UP_S`` at most): a drive has them at once. With the host as SYNC producer the plant runs
 as many 8 kHz ticks per SYNC as the SYNC timestamps say elapsed
 (``sync_clock="timestamps"``, like a drive whose clock follows SYNC), or the
 nominal cycle 0x60C2 (``sync_clock="nominal"``).
@@ -77,8 +80,10 @@ ABORT_DEVICE_STATE = 0x08000022
 SYNC_COB_ID = 0x080
 #: 0x1005 bit 30: this node produces SYNC
 SYNC_PRODUCER_BIT = 1 << 30
-#: a simulated clock further behind than this slips instead of bursting the missed cycles [s]
-CATCH_UP_LIMIT_S = 0.05
+#: a simulated clock later than this fraction of a cycle slips instead of bursting the missed cycles
+SLIP_AFTER = 0.5
+#: longest the simulated clock waits for frames its own receive thread has not taken yet [s]
+RX_CATCH_UP_S = 0.02
 #: COB-ID of the other nodes' traffic the ``bus_load`` option puts on the bus (not a CiA 301 service)
 BACKGROUND_COB_ID = 0x7F0
 #: Bytes per trace/waveform sample on the bus (INT32).
@@ -867,9 +872,11 @@ class CanopenSlave:
             if now < due:
                 time.sleep(due - now)
                 continue
+            if self._receiving(until=now + RX_CATCH_UP_S):
+                continue  # frames wait in this process, not on the bus: a drive would have them already
             lag = now - due
             self.clock_lag_max_s = max(self.clock_lag_max_s, lag)
-            if lag > CATCH_UP_LIMIT_S:
+            if lag > SLIP_AFTER * period:
                 self.clock_slips += 1
                 due = now
             try:
@@ -888,6 +895,16 @@ class CanopenSlave:
                 logger.exception("sim drive: error in the SYNC producer")
                 return
             due += period
+
+    def _receiving(self, until: float) -> bool:
+        """True while frames that reached this node's bus wait for its receive thread (and until
+        ``until``): the simulation, not the bus, is behind, so its clock waits for them (a drive's
+        controller has a frame the moment it is on the bus)."""
+        queue = getattr(self.network.bus, "queue", None)  # python-can's virtual bus
+        if queue is None or queue.qsize() == 0 or time.perf_counter() > until:
+            return False
+        time.sleep(0.0001)
+        return True
 
     def _other_nodes(self) -> None:
         """Other nodes' traffic: 8-byte frames at ``bus_load`` of the bit rate, in 1 ms bursts."""

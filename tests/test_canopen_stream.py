@@ -49,8 +49,8 @@ def test_lost_frames_leave_marked_samples_and_the_rest_exact(tmp_path, cpu_hog):
         report, dropped = drive.stream_report, drive.simulator.frames_dropped
     rec = read_recording(tmp_path / "run.mcap")
     lost = rec.lost_mask
-    assert len(rec) == 2000 and rec.is_uniform and dropped > 0
-    # a lost TPDO or SYNC loses its cycle (a lost RPDO only holds a setpoint): about 4 % of 2000
+    assert len(rec) >= 2000 and rec.is_uniform and dropped > 0  # a lost TPDO also pauses the excitation
+    # a lost TPDO or SYNC loses its cycle (a lost RPDO only pauses the excitation): about 4 % of 2000
     assert 20 < lost.sum() < 200 and report.lost_cycles == lost.sum()
     assert rec.metadata["lost_samples"] == encode_samples(lost)
     # the plant fed with the recorded torque: exact wherever the drive's TPDO arrived. A lost cycle's torque
@@ -95,7 +95,7 @@ def test_streamed_identification_matches_the_plant_beside_a_cpu_hog(tmp_path, cp
     with streamed(plant={"seed": 4}) as drive:
         outcome = Sequencer(Config(), drive, tmp_path, identify=hybrid.identify, tune=False).run()
     result, truth = outcome.identification, PlantParameters()
-    assert len(outcome.recording) == 20_000
+    assert len(outcome.recording) >= 20_000  # 20000 setpoints, and the cycles a late host paused them
     assert math.degrees(result.epsilon_rad) == pytest.approx(truth.epsilon_deg, abs=0.02)
     for name in ("J_m", "J_l", "K"):
         assert getattr(result.parameters, name) == pytest.approx(getattr(truth, name), rel=0.02), name
@@ -162,7 +162,7 @@ def test_cli_ends_the_chirp_at_the_usable_band_when_allowed(tmp_path, capsys):
     assert "usable band 200 Hz, below the excitation band 400 Hz" in capsys.readouterr().err
     assert main([*argv, "--allow-narrow-band", "--out", str(tmp_path / "narrow")]) == 0
     doc = json.loads(capsys.readouterr().out)
-    assert doc["recording"]["sample_rate_hz"] == pytest.approx(1000) and doc["recording"]["samples"] == 1000
+    assert doc["recording"]["sample_rate_hz"] == pytest.approx(1000) and doc["recording"]["samples"] >= 1000
     assert "1000 Hz cycle" in doc["recording"]["bus_budget"] and "limited by --rate" in doc["recording"]["bus_budget"]
     rec = read_recording(tmp_path / "narrow" / "run.mcap")
     assert "0.1→200 Hz" in rec.metadata["excitation"]

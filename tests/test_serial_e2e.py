@@ -98,7 +98,7 @@ def test_streamed_through_an_slcan_adapter_beside_a_cpu_hog(direct, tmp_path, ca
     with sim_drive("slcan", "--identity", "generic") as port:
         doc = run_cli(capsys, "--port", port, "--interface", "slcan", "--no-tune", "--out", str(tmp_path))
     rec = read_recording(tmp_path / "run.mcap")
-    assert len(rec) == 20_000 and rec.sample_rate_hz == 2000 and rec.is_uniform
+    assert len(rec) >= 20_000 and rec.sample_rate_hz == 2000 and rec.is_uniform
     assert "host-streamed CST on the drive's clock" in rec.metadata["excitation_path"]
     assert doc["recording"]["drive"]["vendor"] == "vendor 0x00000000"
     got = json.loads((tmp_path / "result.json").read_text())

@@ -75,6 +75,10 @@ class CheckedSlcanBus(slcanBus):
 
     def __init__(self, channel: str, **kwargs: Any) -> None:
         self.port_name = channel
+        #: arrival time (time.time) of the bytes read so far: (end offset in the stream, time)
+        self._arrivals: list[tuple[int, float]] = []
+        self._consumed = 0
+        self._line_time = 0.0
         self.garbled = 0
         self.last_garbled = ""
         self.frames = 0
@@ -96,6 +100,7 @@ class CheckedSlcanBus(slcanBus):
                 end = min(ends)
                 line = buf[: end + 1].decode("ascii", "replace")
                 del buf[: end + 1]
+                self._stamp(end + 1)
                 return self._checked(line)
             if self.failure is not None:  # the receive thread keeps waiting; send() reports it
                 time.sleep(0.1 if timeout is None else min(timeout, 0.1))
@@ -111,8 +116,27 @@ class CheckedSlcanBus(slcanBus):
                 return None
             if chunk:
                 buf.extend(chunk)
+                self._arrivals.append((self._consumed + len(buf), time.time()))
             elif expiry.expired():
                 return None
+
+    def _stamp(self, length: int) -> None:
+        """The arrival time of the line just taken from the buffer (its last byte's read)."""
+        end = self._consumed + length
+        for at, when in self._arrivals:
+            if at >= end:
+                self._line_time = when
+                break
+        self._consumed = end
+        self._arrivals = [(at, when) for at, when in self._arrivals if at > end]
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        """python-can's, with each frame stamped when its line reached this host (python-can stamps it
+        when parsed): the streamed cycle tells an answer that waited in the host from a fresh one."""
+        msg, filtered = super()._recv_internal(timeout)
+        if msg is not None and self._line_time:
+            msg.timestamp = self._line_time
+        return msg, filtered
 
     def _checked(self, line: str) -> str | None:
         if line and line[0] in "tTrR":

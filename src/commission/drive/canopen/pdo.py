@@ -16,11 +16,12 @@ Cycle. The drive keeps time: it produces SYNC k with its counter (0x1005 bit 30,
 0x1006, 0x1019), applies the setpoint that reached it before SYNC k (else holds
 the previous one), and answers with the TPDO latched at SYNC k: position, the
 torque it applies from SYNC k on (0x6077, per mille of rated: the unit of the
-setpoint, so the echo is exact) and the statusword. The host answers each SYNC
+setpoint, so the echo is exact) and the statusword. The host answers each TPDO
 k at once with the setpoint for cycle k + 1, from the bus's notifier thread (no
 thread switch in between). A late host costs a held setpoint, not a wrong
 record: sample j of the record is cycle c0 + 1 + j on the drive's clock, with the
-torque the drive says it applied. A cycle whose TPDO never arrived is marked
+torque the drive says it applied; the setpoints are played in order, a late one
+pausing the excitation rather than being skipped (see :class:`SyncedStream`). A cycle whose TPDO never arrived is marked
 lost (the SYNC counter says which); a SYNC lost on the way leaves the next
 TPDO unattributable, so that cycle is marked lost too.
 """
@@ -45,6 +46,8 @@ STREAM_FRAMES: tuple[int, ...] = (1, 2, 8)
 SYNC_COUNTER_OVERFLOW = 240
 #: bits per byte on a UART line (8N1)
 LINE_BITS_PER_BYTE = 10
+#: a TPDO that waited longer than this many cycles is stale: the drive's next SYNC has passed
+STALE_AFTER = 0.75
 
 
 def slcan_line_bytes(n_bytes: int) -> int:
@@ -181,25 +184,23 @@ class StreamReport:
     """How a drive-clocked streamed run went, cycle by cycle on the drive's clock."""
 
     planned_rate_hz: float
+    targets: int
+    """setpoints of the excitation (each played once, in order)."""
     cycles: int
-    """cycles of the record (samples)."""
+    """cycles of the record (samples): the targets plus the pauses."""
     lost_cycles: int
     """cycles whose TPDO did not arrive (or could not be attributed): interpolated and marked."""
     longest_gap_cycles: int
     """the longest run of consecutive lost cycles."""
-    held_cycles: int
-    """cycles in which the drive applied an older setpoint because the host's arrived late."""
-    stalled_cycles: int
-    """of those, cycles whose applied setpoint was older than the previous cycle's (the host missed
-    two or more SYNCs in a row: the excitation stood still there)."""
-    changing_cycles: int
-    """cycles whose setpoint differed from the one before (only there a held setpoint shows)."""
+    longest_pause_cycles: int
+    """the longest run of answers the host repeated because it was behind (the excitation paused)."""
     sync_jitter_rms_s: float
     """RMS deviation of the SYNC arrival intervals at the host from the period (bus + host delays)."""
     sync_jitter_max_s: float
     latency_median_s: float
-    """host response: the SYNC frame's time stamp to the setpoint sent, median (the time stamp is the
-    bus's on SocketCAN and the virtual bus; an slcan adapter's frames are stamped on arrival at the host)."""
+    """host response: the SYNC frame's time stamp to the setpoint sent (after the cycle's TPDO), median (the
+    time stamp is the bus's on SocketCAN and the virtual bus; an slcan adapter's frames are stamped on
+    arrival at the host)."""
     latency_p99_s: float
     latency_max_s: float
     budget: BusBudget
@@ -209,29 +210,29 @@ class StreamReport:
         return self.lost_cycles / self.cycles if self.cycles else 0.0
 
     @property
-    def held_fraction(self) -> float:
-        """Held setpoints as a fraction of the cycles where holding one makes a difference."""
-        return self.held_cycles / self.changing_cycles if self.changing_cycles else 0.0
+    def pause_cycles(self) -> int:
+        """Cycles in which the drive held a setpoint because the host's next one came late."""
+        return max(0, self.cycles - self.targets)
 
     @property
-    def stalled_fraction(self) -> float:
-        return self.stalled_cycles / self.changing_cycles if self.changing_cycles else 0.0
+    def stretch(self) -> float:
+        """How much longer the excitation took than planned (0: not at all)."""
+        return self.pause_cycles / self.targets if self.targets else 0.0
 
     def describe(self) -> str:
         return (
-            f"streamed CST on the drive's clock: {self.cycles} cycles at {self.planned_rate_hz:.0f} Hz; "
-            f"{self.lost_cycles} lost ({self.lost_fraction:.1%}, longest gap {self.longest_gap_cycles}); "
-            f"{self.held_cycles} setpoints late, the previous one held by the drive ({self.held_fraction:.1%} of "
-            f"changing ones; {self.stalled_cycles} more than one cycle late); "
-            f"SYNC arrival jitter rms {self.sync_jitter_rms_s * 1e6:.0f} us, max {self.sync_jitter_max_s * 1e6:.0f} us; "
-            f"host response median {self.latency_median_s * 1e6:.0f} us, p99 {self.latency_p99_s * 1e6:.0f} us, "
-            f"max {self.latency_max_s * 1e6:.0f} us"
+            f"streamed CST on the drive's clock: {self.targets} setpoints in {self.cycles} cycles at "
+            f"{self.planned_rate_hz:.0f} Hz ({self.pause_cycles} paused by late setpoints, {self.stretch:.1%}, "
+            f"longest pause {self.longest_pause_cycles}); {self.lost_cycles} lost ({self.lost_fraction:.1%}, "
+            f"longest gap {self.longest_gap_cycles}); SYNC arrival jitter rms {self.sync_jitter_rms_s * 1e6:.0f} us, "
+            f"max {self.sync_jitter_max_s * 1e6:.0f} us; host response median {self.latency_median_s * 1e6:.0f} us, "
+            f"p99 {self.latency_p99_s * 1e6:.0f} us, max {self.latency_max_s * 1e6:.0f} us"
         )
 
 
 @dataclass
 class CycleRecord:
-    """What the drive reported, per cycle of a run (index 0: the cycle before the first sample)."""
+    """What happened per cycle of a run (index 0: the cycle before the first sample)."""
 
     position: NDArray[np.int64]
     torque: NDArray[np.int64]
@@ -239,23 +240,37 @@ class CycleRecord:
     status: NDArray[np.int64]
     received: NDArray[np.bool_]
     ambiguous: NDArray[np.bool_]
+    sent: NDArray[np.int64]
+    """the setpoint [per mille] the host sent last before the cycle's SYNC (what it meant the drive to apply)."""
     sync_time: NDArray[np.float64]
-    """host clock (time.time) at which the SYNC of the cycle arrived; NaN if it did not."""
+    """time stamp of the cycle's SYNC (time.time clock); NaN if it did not arrive."""
     latency: NDArray[np.float64]
     """host response time to the SYNC of the cycle [s]; NaN where none was sent."""
 
     @classmethod
     def empty(cls, n: int) -> CycleRecord:
         return cls(np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, bool),
-                   np.zeros(n, bool), np.full(n, np.nan), np.full(n, np.nan))
+                   np.zeros(n, bool), np.zeros(n, np.int64), np.full(n, np.nan), np.full(n, np.nan))
 
 
 class SyncedStream:
-    """Host side of drive-clocked CST: the drive's SYNC (with counter) paces the host's setpoints.
+    """Host side of drive-clocked CST: the drive's SYNC (with counter) and TPDO pace the host.
+
+    The host answers each cycle's TPDO (sent by the drive right after its SYNC) with the next
+    setpoint. The setpoints advance one per answer, not with the clock: a host that stalls pauses
+    the excitation (the drive holds the last setpoint) and goes on where it stopped, instead of
+    jumping to where the clock says; such jumps, after every stall of a busy host, bring load impacts
+    that cost the identifier accuracy (bench_streamed.py). After a stall the queued TPDOs are
+    answered back to back, and each answer overwrites the one before in the drive before it acts:
+    a TPDO older than ``STALE_AFTER`` cycles by its time stamp (the bus's, or its arrival at the host
+    for slcan), or handled within a quarter cycle of the previous one while the drive reports that
+    one not yet applied, is answered with the last setpoint again instead of the next.
+    (A drive that receives two answers within one cycle for another reason still skips one
+    setpoint: a step of one sample, as the chirp itself makes.)
 
     The PDO mapping is configured over SDO by the backend; the cyclic frames are packed here with
     precompiled structs (a Python PdoMap per frame would cost more than the cycle allows), and the
-    callbacks run in the bus's notifier thread, which answers each SYNC before anything else runs.
+    callbacks run in the bus's notifier thread, which answers each TPDO before anything else runs.
 
     :param counter_overflow: the SYNC counter's overflow (0x1019), 0 if SYNCs carry no counter.
     """
@@ -279,18 +294,25 @@ class SyncedStream:
         self._cycle = -1
         self._last_raw: int | None = None
         self._tpdo_for: int | None = None
+        self._next = 0
+        self._last_sent: int | None = None
+        self._handled_at = 0.0
+        self._pause = 0
+        self.longest_pause = 0
+        self.last_target_cycle: int | None = None
+        """record index of the cycle in which the drive applied the last setpoint."""
         self.record = CycleRecord.empty(1)
         self.last_sync_monotonic: float | None = None
+        self.last_tpdo_monotonic: float | None = None
         self.last_status = 0
         self.samples_done = 0
-        """samples whose cycle has passed (received or not)."""
+        """setpoints sent so far (for progress)."""
         self._done = threading.Event()
         network.subscribe(SYNC_COB_ID, self._on_sync)
         network.subscribe(tpdo_cob, self._on_tpdo)
 
     # -- notifier thread ----------------------------------------------------------------------------------
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        now = time.time()
         if self.counter_overflow >= 2 and len(data) >= 1:
             raw = data[0]
             if self._last_raw is None:
@@ -308,46 +330,82 @@ class SyncedStream:
             return
         if self._c0 is None:
             self._c0 = cycle
-        k = cycle - self._c0  # the setpoint sent now acts from SYNC cycle + 1 on: sample k
-        n = self._targets.size
-        self._send(self.rpdo_cob, self._pack(int(self._targets[k]) if 0 <= k < n else 0))
+        i = cycle - self._c0
         rec = self.record
-        if k <= n:
-            rec.sync_time[k] = timestamp
-            rec.latency[k] = now - timestamp
-        self.samples_done = min(n, max(self.samples_done, k - 1))
-        if k >= n + 1:
-            self.samples_done = n
-            self._done.set()
+        if i < rec.received.size:
+            rec.sync_time[i] = timestamp
+        if i + 1 >= rec.received.size:
+            self._done.set()  # out of room: the run took far longer than planned
+        last = self.last_target_cycle
+        if last is not None and i >= last + 2:
+            self._done.set()  # the last setpoint's cycle has passed
 
     def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         position, torque, status = self._unpack(bytes(data))
         self.last_status = status
+        self.last_tpdo_monotonic = time.monotonic()
         if self._c0 is None:
             return
         i = self._cycle - self._c0  # record index: 0 is the cycle before the first sample
         rec = self.record
-        if not 0 <= i < rec.received.size:
+        if not 0 <= i < rec.received.size - 1:
             return
         if self._tpdo_for == self._cycle:  # two TPDOs for one SYNC: a SYNC was lost in between
             rec.ambiguous[i] = True
+        else:
+            self._tpdo_for = self._cycle
+            rec.position[i] = position
+            rec.torque[i] = torque
+            rec.status[i] = status
+            rec.received[i] = True
+        if not self._armed:
             return
-        self._tpdo_for = self._cycle
-        rec.position[i] = position
-        rec.torque[i] = torque
-        rec.status[i] = status
-        rec.received[i] = True
-        if i == rec.received.size - 1:
-            self.samples_done = self._targets.size
-            self._done.set()
+        if self.last_target_cycle is not None:
+            self._send(self.rpdo_cob, self._pack(0))  # the excitation is over
+            return
+        # the next setpoint, unless this TPDO is stale: it waited in the host (or reached it in a burst
+        # while the drive still holds the last setpoint) so long that the drive's next SYNC has passed,
+        # and a queued TPDO's answer will overwrite this one before it acts: then repeat the last one
+        handled = time.perf_counter()
+        n = self._targets.size
+        k = self._next
+        waited = time.time() - timestamp
+        burst = handled - self._handled_at < 0.25 * self.period_s and torque != self._last_sent
+        if self._last_sent is not None and (waited > STALE_AFTER * self.period_s or burst):
+            k -= 1
+            self._pause += 1
+            self.longest_pause = max(self.longest_pause, self._pause)
+        else:
+            self._pause = 0
+            if k == n:
+                self.last_target_cycle = i  # the last setpoint acts in this cycle: the record ends here
+                self._done.set()
+                self._send(self.rpdo_cob, self._pack(0))
+                return
+        self._handled_at = handled
+        value = int(self._targets[k])
+        self._send(self.rpdo_cob, self._pack(value))
+        self._next = k + 1
+        self._last_sent = value
+        rec.sent[i + 1] = value
+        sync_at = rec.sync_time[i]
+        rec.latency[i] = time.time() - sync_at if np.isfinite(sync_at) else np.nan
+        self.samples_done = k + 1
 
     # -- main thread ------------------------------------------------------------------------------------------
-    def arm(self, targets: NDArray[np.int16]) -> None:
-        """Stream ``targets`` (per mille of rated), one per cycle, from the next SYNC on."""
+    def arm(self, targets: NDArray[np.int16], max_cycles: int) -> None:
+        """Stream ``targets`` (per mille of rated), in order, from the next SYNC on; the record holds
+        at most ``max_cycles`` cycles."""
         self._armed = False
         self._targets = np.asarray(targets, dtype=np.int16)
-        self.record = CycleRecord.empty(self._targets.size + 1)
+        self.record = CycleRecord.empty(max(max_cycles, self._targets.size) + 2)
         self.samples_done = 0
+        self._next = 0
+        self._last_sent = None
+        self._pause = 0
+        self.longest_pause = 0
+        self.last_target_cycle = None
+        self.last_tpdo_monotonic = None
         self._done.clear()
         self._c0 = None
         self._armed = True
@@ -359,31 +417,30 @@ class SyncedStream:
         self._armed = False
 
     def wait(self, timeout_s: float) -> bool:
-        """Wait until every cycle of the run has passed, up to ``timeout_s``; True when done."""
+        """Wait until every setpoint has been played, up to ``timeout_s``; True when done."""
         return self._done.wait(timeout_s)
 
     @property
     def targets(self) -> NDArray[np.int16]:
         return self._targets
 
+    def samples(self) -> int:
+        """Samples of the record so far: every cycle up to the last setpoint's (or the last TPDO heard)."""
+        if self.last_target_cycle is not None:
+            return self.last_target_cycle
+        heard = np.flatnonzero(self.record.received & ~self.record.ambiguous)
+        return max(0, int(heard[-1]) if heard.size else 0)
+
     def lost_mask(self, n: int) -> NDArray[np.bool_]:
         """Samples 0..n-1 whose cycle's TPDO is missing or unattributable."""
         rec = self.record
         return ~rec.received[1 : n + 1] | rec.ambiguous[1 : n + 1]
 
-    def report(self, budget: BusBudget, n: int | None = None) -> StreamReport:
+    def report(self, budget: BusBudget) -> StreamReport:
         rec = self.record
-        n = self._targets.size if n is None else n
+        n = self.samples()
         lost = self.lost_mask(n)
         runs = np.diff(np.flatnonzero(np.diff(np.concatenate(([0], lost.astype(np.int8), [0])))))[::2]
-        applied = rec.torque[1 : n + 1]
-        targets = self._targets[:n].astype(np.int64)
-        known = ~lost
-        changing = known.copy()
-        changing[1:] &= targets[1:] != targets[:-1]
-        held = changing & (applied != targets)
-        previous = np.concatenate(([0], targets[:-1]))
-        stalled = held & (applied != previous)
         t = rec.sync_time[: n + 1]
         dt = np.diff(t)
         dt = dt[np.isfinite(dt)]
@@ -393,10 +450,9 @@ class SyncedStream:
         if lat.size == 0:
             lat = np.zeros(1)
         return StreamReport(
-            planned_rate_hz=budget.rate_hz, cycles=n, lost_cycles=int(lost.sum()),
-            longest_gap_cycles=int(runs.max()) if runs.size else 0, held_cycles=int(held.sum()),
-            stalled_cycles=int(stalled.sum()),
-            changing_cycles=int(changing.sum()), sync_jitter_rms_s=float(np.sqrt(np.mean(jitter**2))),
+            planned_rate_hz=budget.rate_hz, targets=int(min(self._targets.size, self.samples_done)), cycles=n,
+            lost_cycles=int(lost.sum()), longest_gap_cycles=int(runs.max()) if runs.size else 0,
+            longest_pause_cycles=self.longest_pause, sync_jitter_rms_s=float(np.sqrt(np.mean(jitter**2))),
             sync_jitter_max_s=float(np.max(np.abs(jitter))), latency_median_s=float(np.median(lat)),
             latency_p99_s=float(np.percentile(lat, 99)), latency_max_s=float(np.max(lat)), budget=budget,
         )
@@ -413,7 +469,7 @@ class SyncedStream:
 def record_signals(
     counts: NDArray[np.int64],
     applied_permille: NDArray[np.int64],
-    targets: NDArray[np.int16] | NDArray[np.int64],
+    intended_permille: NDArray[np.int64],
     received: NDArray[np.bool_],
     rate_hz: float,
     rated_torque_nm: float,
@@ -421,14 +477,15 @@ def record_signals(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
     """The record's signals from what the drive reported per cycle.
 
-    Inputs have one entry per cycle, index 0 being the cycle before the first sample (it gives the
-    first velocity); ``targets`` has one per sample. Lost cycles get their position from a cubic
-    spline through the received ones and the torque the host meant (the drive's is unknown there).
+    ``counts``, ``applied_permille`` and ``received`` have one entry per cycle, index 0 being the cycle
+    before the first sample (it gives the first velocity); ``intended_permille`` has one per sample: the
+    setpoint the host sent for it. Lost cycles get their position from a cubic spline through the
+    received ones and the torque the host meant (the drive's is unknown there).
 
     :returns: torque [N·m], motor velocity [rad/s] (position difference over the cycle, as the
         identifier models a drive's velocity), motor position [rad], and the mask of lost samples.
     """
-    n = int(np.asarray(targets).size)
+    n = int(np.asarray(intended_permille).size)
     ok = np.asarray(received[: n + 1], dtype=bool)
     counts_f = np.asarray(counts[: n + 1], dtype=np.float64)
     idx = np.arange(n + 1)
@@ -442,5 +499,5 @@ def record_signals(
     position = counts_f * (2 * math.pi / increments_per_rev)
     lost = ~ok[1:]
     applied = np.asarray(applied_permille[1 : n + 1], dtype=np.float64)
-    torque = np.where(lost, np.asarray(targets, dtype=np.float64), applied) * (rated_torque_nm / 1000)
+    torque = np.where(lost, np.asarray(intended_permille, dtype=np.float64), applied) * (rated_torque_nm / 1000)
     return torque, np.diff(position) * rate_hz, position[1:], lost
