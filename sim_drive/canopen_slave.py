@@ -572,6 +572,11 @@ class CanopenSlave:
             consumer, last = self._consumer, self._host_last
             if consumer is None or last is None or time.monotonic() - last <= consumer[1]:
                 continue
+            # this process may not have been scheduled: let its receive thread take what is queued first
+            self._closing.wait(0.1)
+            consumer, last = self._consumer, self._host_last
+            if consumer is None or last is None or time.monotonic() - last <= consumer[1]:
+                continue
             with self._lock:
                 self._consumer = None  # one fault per silence; the host re-arms 0x1016 when it returns
                 if self.device.state is not State.FAULT:

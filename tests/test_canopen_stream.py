@@ -16,7 +16,7 @@ from commission.cli import main
 from commission.config import Config
 from commission.drive import State
 from commission.drive.canopen import open_simulated, plan_cycle
-from commission.drive.canopen.pdo import STREAM_FRAMES, frame_bits, slcan_line_bytes
+from commission.drive.canopen.pdo import STREAM_FRAMES, frame_bits, record_signals, slcan_line_bytes
 from commission.exceptions import ConfigError, DriveError, RecordingError
 from commission.excitation import chirp
 from commission.mcaplog import read_recording
@@ -179,3 +179,21 @@ def test_lost_samples_round_trip_as_ranges():
     assert rec.lost_mask.sum() == 3 and rec.head(4).lost_mask.tolist() == [False, False, False, True]
     with pytest.raises(RecordingError, match="'lost_samples': 'x' is not an index"):
         decode_samples("1,x", 4)
+
+
+def test_a_lost_cycle_is_rebuilt_from_its_neighbours_and_marked():
+    """Positions on a cubic (a spline through the received cycles reproduces it exactly), torque as the
+    host meant it where the drive's report is missing, velocity the position difference per cycle."""
+    n, rate, inc = 40, 2000.0, 2**24
+    k = np.arange(n + 1, dtype=np.float64)
+    counts = (3 * k**3 - 50 * k**2 + 7 * k + 1000).astype(np.int64)
+    applied = np.arange(n + 1) % 7
+    intended = (np.arange(1, n + 1) % 7) + 100  # differs from applied: shows which one was used
+    received = np.ones(n + 1, dtype=bool)
+    received[[5, 17, 18, 30]] = False
+    torque, velocity, position, lost = record_signals(counts, applied, intended, received, rate, RATED_NM, inc)
+    step = 2 * math.pi / inc
+    np.testing.assert_allclose(position, counts[1:] * step, rtol=0, atol=1e-6 * step)
+    np.testing.assert_array_equal(lost, ~received[1:])
+    np.testing.assert_allclose(torque, np.where(lost, intended, applied[1:]) * RATED_NM / 1000)
+    np.testing.assert_allclose(velocity, np.diff(counts) * step * rate, rtol=1e-9)

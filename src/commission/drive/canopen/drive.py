@@ -715,7 +715,6 @@ class CanopenDrive(Drive):
             raise DriveError(
                 f"{report.lost_fraction:.0%} of cycles lost (longest gap {report.longest_gap_cycles / rate * 1e3:.0f} ms): "
                 f"{via} or this host did not carry the {rate:.0f} Hz cycle's feedback; try {lower}"
-                + ("" if self.line_bps or self.interface != "slcan" else " or tell the serial line's speed")
             )
         if report.stretch > MAX_STRETCH:
             raise DriveError(
