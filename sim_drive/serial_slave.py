@@ -28,7 +28,8 @@ the pty model a real line: one direction at a time for Modbus (half duplex, as
 RS-485), both at once for the slcan adapter (a UART). An slcan adapter whose
 line cannot keep up with the bus drops frames, as a real one's transmit FIFO
 overruns: a frame that waited longer than ``SlcanAdapter.FIFO_LINES`` lines take
-on the line is dropped (counted in ``overruns``, reported by ``F``). Without it (default: a USB adapter), times are the pty's.
+on the line is dropped (counted in ``overruns``, reported by ``F``); a USB adapter
+(no line rate) drops what waited longer than ``SlcanAdapter.FIFO_AGE_S`` for the host. Without it (default: a USB adapter), times are the pty's.
 """
 
 from __future__ import annotations
@@ -265,6 +266,9 @@ class SlcanAdapter:
     SERIAL = "NSIM1"
     #: frame lines the adapter's transmit FIFO holds while its UART is busy; more are dropped (overrun)
     FIFO_LINES = 32
+    #: without a UART (USB): a frame the host has not taken within this long is dropped, as the
+    #: adapter's FIFO would overflow rather than delay the bus without bound [s]
+    FIFO_AGE_S = 0.05
 
     def __init__(
         self,
@@ -396,7 +400,8 @@ class SlcanAdapter:
                 continue
             line = slcan_line(msg)
             rate = self.link.line_rate_bps
-            if rate and time.time() - msg.timestamp > self.FIFO_LINES * len(line) * BITS_PER_BYTE / rate:
+            fifo_s = self.FIFO_LINES * len(line) * BITS_PER_BYTE / rate if rate else self.FIFO_AGE_S
+            if time.time() - msg.timestamp > fifo_s:
                 self.overruns += 1  # it waited longer than the FIFO holds: on an adapter it was overwritten
                 continue
             if msg.arbitration_id == 0x580 + self.node_id and not msg.is_extended_id:

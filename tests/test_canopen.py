@@ -88,7 +88,7 @@ def test_streamed_fallback_records_what_the_drive_applied_on_its_own_clock(tmp_p
     assert np.all(np.abs(permille - np.round(permille)) < 1e-9)
     targets = np.concatenate(([0.0], np.round(outcome.waveform.samples[::4] / 0.637 * 1000)))
     # which setpoint each sample can be (targets repeat): index in force -> fewest skips to get there
-    reach = {0: 0}  # 0: the zero before the run
+    reach, jumps = {0: 0}, 0  # 0: the zero before the run
     for j, value in enumerate(np.round(permille)):
         reach_next: dict[int, int] = {}
         for at, skips in reach.items():
@@ -96,12 +96,13 @@ def test_streamed_fallback_records_what_the_drive_applied_on_its_own_clock(tmp_p
                 i = at + step
                 if i < targets.size and targets[i] == value:
                     reach_next[i] = min(reach_next.get(i, 1 << 30), skips + (step > 1))
-        # never the clock's jump after a stall
-        assert reach_next, (f"sample {j}: {np.round(permille[max(0, j - 6):j + 3]).tolist()} after setpoint(s) "
-                            f"{sorted(reach)[:3]} of {targets[min(reach):min(reach) + 6].tolist()}: out of order or a jump")
+        if not reach_next:  # a jump ahead: only where the host caught up with the clock after a long stall
+            later = np.flatnonzero(targets[max(reach) + 4:] == value)
+            assert later.size, f"sample {j}: setpoint {value} out of order"
+            reach_next, jumps = {max(reach) + 4 + int(later[0]): min(reach.values())}, jumps + 1
         reach = reach_next
     # a skip: two answers reached the drive within one cycle (one step of the chirp, not a jump)
-    assert max(reach) >= 1999 and min(reach.values()) < 0.01 * len(rec)
+    assert max(reach) >= 1999 and min(reach.values()) < 0.01 * len(rec) and jumps <= report.catch_ups
     # independent check: the plant, fed that torque held per cycle from rest, lands on every recorded position
     exact = Plant(PlantParameters(seed=1)).run_torque(np.concatenate((np.zeros(4), np.repeat(rec.torque_ref, 4))))
     np.testing.assert_array_equal(rec.motor_position, exact.motor_position[4::4])

@@ -48,6 +48,9 @@ SYNC_COUNTER_OVERFLOW = 240
 LINE_BITS_PER_BYTE = 10
 #: a TPDO that waited longer than this many cycles is stale: the drive's next SYNC has passed
 STALE_AFTER = 0.75
+#: pauses may let the setpoints fall this far behind the drive's clock [s]; beyond, they skip ahead
+#: (each paused cycle holds a torque the envelope check did not plan for)
+MAX_LAG_S = 0.05
 
 
 def slcan_line_bytes(n_bytes: int) -> int:
@@ -194,6 +197,8 @@ class StreamReport:
     """the longest run of consecutive lost cycles."""
     longest_pause_cycles: int
     """the longest run of answers the host repeated because it was behind (the excitation paused)."""
+    catch_ups: int
+    """times the setpoints skipped ahead to stay within ``MAX_LAG_S`` of the drive's clock."""
     sync_jitter_rms_s: float
     """RMS deviation of the SYNC arrival intervals at the host from the period (bus + host delays)."""
     sync_jitter_max_s: float
@@ -223,7 +228,7 @@ class StreamReport:
         return (
             f"streamed CST on the drive's clock: {self.targets} setpoints in {self.cycles} cycles at "
             f"{self.planned_rate_hz:.0f} Hz ({self.pause_cycles} paused by late setpoints, {self.stretch:.1%}, "
-            f"longest pause {self.longest_pause_cycles}); {self.lost_cycles} lost ({self.lost_fraction:.1%}, "
+            f"longest pause {self.longest_pause_cycles}, {self.catch_ups} skips ahead); {self.lost_cycles} lost ({self.lost_fraction:.1%}, "
             f"longest gap {self.longest_gap_cycles}); SYNC arrival jitter rms {self.sync_jitter_rms_s * 1e6:.0f} us, "
             f"max {self.sync_jitter_max_s * 1e6:.0f} us; host response median {self.latency_median_s * 1e6:.0f} us, "
             f"p99 {self.latency_p99_s * 1e6:.0f} us, max {self.latency_max_s * 1e6:.0f} us"
@@ -264,7 +269,9 @@ class SyncedStream:
     answered back to back, and each answer overwrites the one before in the drive before it acts:
     a TPDO older than ``STALE_AFTER`` cycles by its time stamp (the bus's, or its arrival at the host
     for slcan), or handled within a quarter cycle of the previous one while the drive reports that
-    one not yet applied, is answered with the last setpoint again instead of the next.
+    one not yet applied, is answered with the last setpoint again instead of the next. Pauses add
+    up to at most ``MAX_LAG_S`` behind the drive's clock: a held torque is an impulse the envelope
+    check did not plan, and a host stalled longer skips ahead instead.
     (A drive that receives two answers within one cycle for another reason still skips one
     setpoint: a step of one sample, as the chirp itself makes.)
 
@@ -299,6 +306,9 @@ class SyncedStream:
         self._handled_at = 0.0
         self._pause = 0
         self.longest_pause = 0
+        #: the most the setpoints may run behind the drive's clock [cycles] before they skip ahead
+        self.max_lag_cycles = max(1, int(round(MAX_LAG_S / period_s)))
+        self.catch_ups = 0
         self.last_target_cycle: int | None = None
         """record index of the cycle in which the drive applied the last setpoint."""
         self.record = CycleRecord.empty(1)
@@ -375,6 +385,11 @@ class SyncedStream:
             k -= 1
             self._pause += 1
             self.longest_pause = max(self.longest_pause, self._pause)
+            if i - k > self.max_lag_cycles and k + 1 < n:
+                # paused too long in all: every held cycle adds the held torque's impulse, so the axis
+                # would drift beyond what the envelope check predicted; catch up with the drive's clock
+                k = min(n - 1, i - self.max_lag_cycles)
+                self.catch_ups += 1
         else:
             self._pause = 0
             if k == n:
@@ -404,6 +419,7 @@ class SyncedStream:
         self._last_sent = None
         self._pause = 0
         self.longest_pause = 0
+        self.catch_ups = 0
         self.last_target_cycle = None
         self.last_tpdo_monotonic = None
         self._done.clear()
@@ -452,7 +468,7 @@ class SyncedStream:
         return StreamReport(
             planned_rate_hz=budget.rate_hz, targets=int(min(self._targets.size, self.samples_done)), cycles=n,
             lost_cycles=int(lost.sum()), longest_gap_cycles=int(runs.max()) if runs.size else 0,
-            longest_pause_cycles=self.longest_pause, sync_jitter_rms_s=float(np.sqrt(np.mean(jitter**2))),
+            longest_pause_cycles=self.longest_pause, catch_ups=self.catch_ups, sync_jitter_rms_s=float(np.sqrt(np.mean(jitter**2))),
             sync_jitter_max_s=float(np.max(np.abs(jitter))), latency_median_s=float(np.median(lat)),
             latency_p99_s=float(np.percentile(lat, 99)), latency_max_s=float(np.max(lat)), budget=budget,
         )
