@@ -102,7 +102,7 @@ def test_streamed_fallback_records_what_the_drive_applied_on_its_own_clock(tmp_p
             reach_next, jumps = {max(reach) + 4 + int(later[0]): min(reach.values())}, jumps + 1
         reach = reach_next
     # a skip: two answers reached the drive within one cycle (one step of the chirp, not a jump)
-    assert max(reach) >= 1999 and min(reach.values()) < 0.01 * len(rec) and jumps <= report.catch_ups
+    assert max(reach) >= 1999 and min(reach.values()) < 0.05 * len(rec) and jumps <= report.catch_ups
     # independent check: the plant, fed that torque held per cycle from rest, lands on every recorded position
     exact = Plant(PlantParameters(seed=1)).run_torque(np.concatenate((np.zeros(4), np.repeat(rec.torque_ref, 4))))
     np.testing.assert_array_equal(rec.motor_position, exact.motor_position[4::4])
