@@ -87,22 +87,22 @@ def test_streamed_fallback_records_what_the_drive_applied_on_its_own_clock(tmp_p
     permille = rec.torque_ref / 0.637 * 1000
     assert np.all(np.abs(permille - np.round(permille)) < 1e-9)
     targets = np.concatenate(([0.0], np.round(outcome.waveform.samples[::4] / 0.637 * 1000)))
-    # which setpoint each sample can be (targets repeat): index in force -> fewest skips to get there
-    reach, jumps = {0: 0}, 0  # 0: the zero before the run
-    for j, value in enumerate(np.round(permille)):
-        reach_next: dict[int, int] = {}
-        for at, skips in reach.items():
-            for step in range(4):  # stay (a pause), the next, or one or two skipped
-                i = at + step
-                if i < targets.size and targets[i] == value:
-                    reach_next[i] = min(reach_next.get(i, 1 << 30), skips + (step > 1))
-        if not reach_next:  # a jump ahead: only where the host caught up with the clock after a long stall
-            later = np.flatnonzero(targets[max(reach) + 4:] == value)
-            assert later.size, f"sample {j}: setpoint {value} out of order"
-            reach_next, jumps = {max(reach) + 4 + int(later[0]): min(reach.values())}, jumps + 1
-        reach = reach_next
-    # a skip: two answers reached the drive within one cycle (one step of the chirp, not a jump)
-    assert max(reach) >= 1999 and min(reach.values()) < 0.05 * len(rec) and jumps <= report.catch_ups
+    # the applied values, each run of equal ones taken once, follow the targets (likewise): a pause
+    # repeats a value, a skipped setpoint (two answers reached the drive within one cycle) is one step of
+    # the chirp left out, and only where the host caught up with the clock after a long stall may it jump
+    def changes(x: np.ndarray) -> np.ndarray:
+        return x[np.concatenate(([True], x[1:] != x[:-1]))]
+
+    wanted, played = changes(targets), changes(np.round(permille))
+    at, skips, jumps = 0, 0, 0
+    for value in played:
+        ahead = np.flatnonzero(wanted[at:] == value)
+        assert ahead.size, f"setpoint {value} out of order"
+        skips += 1 < ahead[0] <= 3
+        jumps += ahead[0] > 3
+        at += int(ahead[0])
+    # (single-step skips are benign: a few per cent on an idle host, more on a loaded one)
+    assert at >= wanted.size - 2 and skips < 0.25 * wanted.size and jumps <= report.catch_ups
     # independent check: the plant, fed that torque held per cycle from rest, lands on every recorded position
     exact = Plant(PlantParameters(seed=1)).run_torque(np.concatenate((np.zeros(4), np.repeat(rec.torque_ref, 4))))
     np.testing.assert_array_equal(rec.motor_position, exact.motor_position[4::4])
