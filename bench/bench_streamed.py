@@ -77,11 +77,11 @@ def within(dev: dict[str, float]) -> bool:
 def stream_figures(doc: dict) -> str:
     s = doc.get("recording", {}).get("stream", "")
     lost = re.search(r"(\d+) lost", s)
-    paused = re.search(r"\((\d+) paused by late setpoints, ([\d.]+)%, longest pause (\d+), (\d+) skips", s)
+    paused = re.search(r"\((\d+) paused by late setpoints, ([\d.]+)%, longest pause (\d+); (\d+) late answers", s)
     p99 = re.search(r"p99 (\d+) us", s)
     if not lost:
         return "trace"
-    pause = (f"paused {paused.group(2)} % (longest {paused.group(3)} cycles, {paused.group(4)} skips ahead)"
+    pause = (f"paused {paused.group(2)} % (longest {paused.group(3)} cycles; {paused.group(4)} late past the budget)"
              if paused else "paused ?")
     return f"lost {lost.group(1)}, {pause}, host p99 {int(p99.group(1)) / 1e3 if p99 else 0:.1f} ms"
 

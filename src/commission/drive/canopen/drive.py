@@ -650,7 +650,11 @@ class CanopenDrive(Drive):
 
         def check() -> None:
             k = streamer.samples_done
-            self._check_link()
+            heard = streamer.last_tpdo_monotonic
+            if heard is None or time.monotonic() - heard > self.heartbeat.timeout_s:
+                # the node's TPDOs every cycle show it alive: a heartbeat dropped or delayed among them by an
+                # overrun adapter or a host behind its bus is not a lost link
+                self._check_link()
             self._emcy_fault(emcy_mark, k, total, rate)
             state = decode_statusword(streamer.last_status) if streamer.last_status else State.OPERATION_ENABLED
             if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):

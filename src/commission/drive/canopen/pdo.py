@@ -198,7 +198,8 @@ class StreamReport:
     longest_pause_cycles: int
     """the longest run of answers the host repeated because it was behind (the excitation paused)."""
     catch_ups: int
-    """times the setpoints skipped ahead to stay within ``MAX_LAG_S`` of the drive's clock."""
+    """late answers that advanced anyway, the pauses having used the ``MAX_LAG_S`` budget (each such
+    setpoint acted a cycle late, or was overwritten by the next: a step of the chirp left out)."""
     sync_jitter_rms_s: float
     """RMS deviation of the SYNC arrival intervals at the host from the period (bus + host delays)."""
     sync_jitter_max_s: float
@@ -228,7 +229,8 @@ class StreamReport:
         return (
             f"streamed CST on the drive's clock: {self.targets} setpoints in {self.cycles} cycles at "
             f"{self.planned_rate_hz:.0f} Hz ({self.pause_cycles} paused by late setpoints, {self.stretch:.1%}, "
-            f"longest pause {self.longest_pause_cycles}, {self.catch_ups} skips ahead); {self.lost_cycles} lost ({self.lost_fraction:.1%}, "
+            f"longest pause {self.longest_pause_cycles}; {self.catch_ups} late answers once the {MAX_LAG_S * 1e3:.0f} ms "
+            f"pause budget was used, acting late or skipped); {self.lost_cycles} lost ({self.lost_fraction:.1%}, "
             f"longest gap {self.longest_gap_cycles}); SYNC arrival jitter rms {self.sync_jitter_rms_s * 1e6:.0f} us, "
             f"max {self.sync_jitter_max_s * 1e6:.0f} us; host response median {self.latency_median_s * 1e6:.0f} us, "
             f"p99 {self.latency_p99_s * 1e6:.0f} us, max {self.latency_max_s * 1e6:.0f} us"
