@@ -29,7 +29,8 @@ RS-485), both at once for the slcan adapter (a UART). An slcan adapter whose
 line cannot keep up with the bus drops frames, as a real one's transmit FIFO
 overruns: a frame that waited longer than ``SlcanAdapter.FIFO_LINES`` lines take
 on the line is dropped (counted in ``overruns``, reported by ``F``); a USB adapter
-(no line rate) drops what waited longer than ``SlcanAdapter.FIFO_AGE_S`` for the host. Without it (default: a USB adapter), times are the pty's.
+(no line rate) drops what waited longer than ``SlcanAdapter.FIFO_AGE_S`` for the host.
+Without a line rate (default: a USB adapter), times are the pty's.
 """
 
 from __future__ import annotations
@@ -268,7 +269,7 @@ class SlcanAdapter:
     FIFO_LINES = 32
     #: without a UART (USB): a frame the host has not taken within this long is dropped, as the
     #: adapter's FIFO would overflow rather than delay the bus without bound [s]
-    FIFO_AGE_S = 0.05
+    FIFO_AGE_S = 0.5
 
     def __init__(
         self,
