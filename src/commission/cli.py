@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from .config import Config, load_config
-from .exceptions import Aborted, CommissionError, LogFormatError, OutputError
+from .exceptions import Aborted, CommissionError, IdentificationError, LogFormatError, OutputError
 from .recording import Recording
 
 EPILOG = """\
@@ -82,7 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="CAN bit rate; with --protocol modbus: the line's baud rate (default: the drive description's)")
     link.add_argument("--node-id", metavar="ID", type=int, help="CANopen node id, or the Modbus device address")
     link.add_argument("--protocol", choices=["canopen", "modbus"], help="protocol on the port (default: canopen for CAN)")
-    link.add_argument("--drive", metavar="NAME", help="drive description under drivers/ (sim, generic-cia402, yaskawa-sigma7; default generic-cia402)")
+    link.add_argument("--drive", metavar="NAME", help="drive description under drivers/ (sim, generic-cia402, yaskawa-sigma7); default: the one "
+                      "matching the drive's identity (0x1018), else generic-cia402; one that does not match is refused")
     link.add_argument(
         "--excitation", choices=["trace", "streamed"],
         help="CANopen: waveform played and traced by the drive (primary), or host-streamed cyclic torque "
@@ -90,8 +91,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     link.add_argument(
         "--allow-narrow-band", action="store_true",
-        help="CANopen streamed: run even if the bus budget's usable band is below the configured f_end_hz",
+        help="CANopen streamed: if the bus budget's usable band is below the configured f_end_hz, end the chirp "
+        "there instead of refusing",
     )
+    link.add_argument("--rate", metavar="HZ", type=float,
+                      help="CANopen streamed: highest cycle rate to use (default: the highest the bus allows)")
     run = p.add_argument_group("run")
     run.add_argument("--config", metavar="FILE", type=Path,
                      help="commissioning recipe: a YAML file, or the name of a shipped one (default, paper-literal, "
@@ -167,6 +171,8 @@ def _recording_summary(rec: Recording) -> dict[str, Any]:
         "peak_motor_velocity_rad_s": float(np.max(np.abs(rec.motor_velocity))),
         "drive": rec.drive.to_dict(),
         "status": rec.metadata.get("status", "unknown"),
+        **{key: rec.metadata[key] for key in ("bus_budget", "stream") if key in rec.metadata},
+        "lost_samples": int(rec.lost_mask.sum()),
     }
 
 
@@ -245,6 +251,10 @@ def _identifier(config: Config, args: argparse.Namespace, term: _Terminal) -> An
 
         try:
             return identify(recording, options, progress=progress)
+        except IdentificationError as err:
+            if "stream" in recording.metadata:  # a streamed record: say how the stream went, it may be why
+                err.args = (f"{err} ({recording.metadata['stream']})",)
+            raise
         finally:
             term.close()
 
@@ -320,6 +330,8 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     )
     if over_can:
         link_options.update(band_hz=config.excitation.f_end_hz, allow_narrow_band=args.allow_narrow_band)
+        if args.rate is not None:
+            link_options["max_rate_hz"] = args.rate
         if args.excitation:
             link_options["excitation"] = args.excitation
     drive = open_drive(
@@ -344,6 +356,14 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
             drive.close()
             raise ConfigError(problem)
     config = config.model_copy(update={"tuning": _tuning_options(config, args)})
+    budget = getattr(drive, "budget", None)
+    if budget is not None:  # host-streamed: the bus budget before anything moves
+        term.say(f"streamed cycle: {budget.describe()}")
+        if config.excitation.f_end_hz > budget.usable_band_hz:  # --allow-narrow-band: the chirp ends there
+            term.say(f"chirp end frequency {config.excitation.f_end_hz:g} Hz -> {budget.usable_band_hz:g} Hz "
+                     "(the usable band of the streamed cycle)")
+            config = config.model_copy(update={"excitation": config.excitation.model_copy(
+                update={"f_end_hz": budget.usable_band_hz})})
     true_plant = None
     if args.sim:
         from .drive.sim import plant_from_options
@@ -355,6 +375,8 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
                               tune=not args.no_tune, true_plant=true_plant,
                               description=getattr(drive, "description", None) or _description(args))
         outcome = sequencer.run()
+        if "stream" in outcome.recording.metadata:
+            term.say(outcome.recording.metadata["stream"])
         check = sequencer.measure_backlash() if args.measure_backlash else None
         term.close()
         if args.apply:

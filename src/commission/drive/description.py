@@ -58,9 +58,9 @@ def parameter_raw(spec: ParameterSpec | ModbusParameter, name: str, value: float
     return raw
 
 __all__ = [
-    "DRIVERS_ENV", "ChannelUnit", "DriveDescription", "ExcitationMethod", "LoopSpec", "ObjectRef", "ParameterSpec",
-    "SourcedValue",
-    "TraceChannel", "drivers_dir", "list_drives", "load_description",
+    "DRIVERS_ENV", "GENERIC_DRIVE", "ChannelUnit", "DriveDescription", "ExcitationMethod", "IdentitySpec",
+    "LoopSpec", "ObjectRef", "ParameterSpec", "SourcedValue", "TraceChannel", "drivers_dir", "find_description",
+    "list_drives", "load_description",
     "ModbusParameter", "ModbusRegister", "ModbusRegisters", "ModbusSpec", "ModbusString", "ModbusTrace",
     "ModbusTraceChannel", "ModbusWaveform",
 ]
@@ -161,8 +161,24 @@ class StreamedSpec(_Model):
     """The host-streamed fallback (standard objects; PDO numbers configurable)."""
 
     rpdo: int = Field(1, ge=1, le=4, description="RPDO number carrying target torque 0x6071")
-    tpdo: tuple[int, int] = Field((1, 2), description="TPDOs: (0x6064 + 0x606C, 0x6077 + 0x6041)")
+    tpdo: int = Field(1, ge=1, le=4, description="TPDO number carrying 0x6064 + 0x6077 + 0x6041 (8 bytes)")
     max_load: float = Field(0.8, gt=0, le=1.0, description="largest bus load allowed")
+
+
+class IdentitySpec(_Model):
+    """What the drives of a family report in 0x1018 (identity object)."""
+
+    vendor_id: int = Field(ge=0, le=0xFFFFFFFF, description="0x1018:01")
+    product_codes: tuple[int, ...] = Field((), description="0x1018:02 values of the family; empty: any")
+
+    def matches(self, vendor_id: int | None, product_code: int | None) -> bool:
+        if vendor_id != self.vendor_id:
+            return False
+        return not self.product_codes or product_code in self.product_codes
+
+    def describe(self) -> str:
+        codes = ", ".join(f"0x{c:X}" for c in self.product_codes) or "any"
+        return f"vendor 0x{self.vendor_id:08X}, product {codes}"
 
 
 class ParameterSpec(_Model):
@@ -376,6 +392,9 @@ class DriveDescription(_Model):
     sdo_timeout_s: float = Field(0.3, gt=0, le=10)
     drive_sample_rate_hz: float = Field(8000.0, gt=0, description="the drive's control/trace clock")
     excitation: ExcitationMethod
+    identity: IdentitySpec | None = Field(
+        None, description="0x1018 of the family: picked when --drive is omitted, checked when given; "
+        "a description without one fits any CiA 402 drive (generic)")
     trace: TraceSpec | None = None
     streamed: StreamedSpec = StreamedSpec()
     units: UnitsSpec = UnitsSpec()
@@ -436,6 +455,27 @@ def drivers_dir() -> Path:
 def list_drives() -> list[str]:
     """Names of the drive families available."""
     return sorted(p.name for p in drivers_dir().iterdir() if (p / DESCRIPTION_FILE).is_file())
+
+
+#: the description used for a drive whose identity no description claims
+GENERIC_DRIVE = "generic-cia402"
+
+
+def find_description(vendor_id: int | None, product_code: int | None) -> DriveDescription | None:
+    """The description whose ``identity`` claims this drive (a product match before a vendor-only
+    one), or None. Descriptions that fail to load are skipped: they cannot claim a drive."""
+    best: tuple[int, DriveDescription] | None = None
+    for name in list_drives():
+        try:
+            desc = load_description(name)
+        except ConfigError:
+            continue
+        if desc.identity is None or not desc.identity.matches(vendor_id, product_code):
+            continue
+        rank = 2 if desc.identity.product_codes else 1
+        if best is None or rank > best[0]:
+            best = (rank, desc)
+    return None if best is None else best[1]
 
 
 def load_description(name_or_path: str | Path) -> DriveDescription:
