@@ -153,7 +153,10 @@ class _Objective:
         sim = simulate_load(pr, p.J_l, p.B_l, p.K, p.D, eps,
                             extra.get("F_cl", 0.0) if self.terms.coulomb_load else None,
                             motor=motor, observer=self.observer)
-        v = pr.lowpass(sim.residual)[EDGE_SAMPLES:-EDGE_SAMPLES]
+        v = pr.lowpass(sim.residual)
+        if pr.keep is not None:  # samples a streamed link lost are no evidence
+            v = v * pr.keep
+        v = v[EDGE_SAMPLES:-EDGE_SAMPLES]
         if pr.load_position is not None:
             w = self.load_weight * sim.load_error[1:-1:pr.decimation]
             v = np.concatenate((v, w[EDGE_SAMPLES:-EDGE_SAMPLES]))

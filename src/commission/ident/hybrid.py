@@ -152,12 +152,17 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
     fs = rec.sample_rate_hz
     use_load = bool(opt.use_load_encoder and rec.load_position is not None)
 
-    def prepared(cutoff_hz: float) -> Any:
+    lost = rec.lost_mask
+    if lost.any():
+        notes.append(f"{int(lost.sum())} samples the link lost are interpolated in the record and left out of "
+                     "the time-domain fit")
+
+    def prepared(cutoff_hz: float, interpolation: str = opt.motor_interpolation) -> Any:
         return prepare_residual(rec.torque_ref, fs, motor_position=rec.motor_position,
                                 motor_velocity=rec.motor_velocity, cutoff_hz=cutoff_hz,
                                 load_position=rec.load_position if use_load else None,
                                 velocity_scale_rad_s=opt.coulomb_velocity_scale_rad_s,
-                                interpolation=opt.motor_interpolation)
+                                interpolation=interpolation, lost=lost if lost.any() else None)
 
     st.start("start", 0.0)
     candidates = ModelTerms(**{name: True for name in opt.model_terms})
@@ -252,10 +257,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
     f_load = (friction_rescan or {}).get("load_nm", 0.5 * friction)
     # the same residual discretized otherwise: its motor position a global spline, its observer half
     # as fast (the estimate's sensitivity to them is part of its uncertainty)
-    other = prepare_residual(rec.torque_ref, fs, motor_position=rec.motor_position, motor_velocity=rec.motor_velocity,
-                             cutoff_hz=fc, load_position=rec.load_position if use_load else None,
-                             velocity_scale_rad_s=opt.coulomb_velocity_scale_rad_s,
-                             interpolation="spline" if opt.motor_interpolation == "local" else "local")
+    other = prepared(fc, "spline" if opt.motor_interpolation == "local" else "local")
     alternates = ((other, observer),
                   (problem, Observer.design(fs, 0.5 * opt.observer_bandwidth_factor * fc, 2.0 * fc, p0.K, p0.D,
                                             load_encoder=use_load)))

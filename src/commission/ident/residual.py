@@ -681,6 +681,9 @@ class ResidualProblem:
     """The raw torque reference [N·m] (samples 0 … N−1), for the lagged torque."""
     velocity_scale_rad_s: float = 2e-3
     """Velocity scale v_s of the smooth sign tanh(v/v_s) of both Coulomb terms [rad/s]."""
+    keep: NDArray[np.float64] | None = None
+    """Weight (1 or 0) of each decimated motor-block sample: 0 where a sample the link lost reaches
+    the residual through the triangle kernel and the low-pass (None: every sample counts)."""
 
     @property
     def n_samples(self) -> int:
@@ -762,6 +765,7 @@ def prepare_residual(
     initial_twist_rad: float | None = None,
     velocity_scale_rad_s: float = 2e-3,
     interpolation: str = "local",
+    lost: NDArray[np.bool_] | None = None,
 ) -> ResidualProblem:
     """Precompute the motor-side regressors of the torque residual.
 
@@ -778,6 +782,8 @@ def prepare_residual(
     :param velocity_scale_rad_s: v_s of the Coulomb terms' smooth sign tanh(v/v_s) [rad/s].
     :param interpolation: motor position between samples (:func:`motor_interpolant`):
         "local" (default) or "spline".
+    :param lost: (N,) true at samples a streamed link lost (interpolated in the record): the residual
+        samples they reach are left out (:attr:`ResidualProblem.keep`).
     """
     tau = np.asarray(torque_ref, dtype=np.float64)
     n = tau.shape[0]
@@ -824,13 +830,19 @@ def prepare_residual(
     w_dn = 0.5 * gw * (1.0 - sq)  # ∫ (1 − s)·f(s) ds: the interval after sample k
     coul = sgn[:-1] @ w_up + sgn[1:] @ w_dn
     rate = np.diff(tau)[:-1] * fs  # (τ_ref[k] − τ_ref[k−1])/Ts at samples 1 … N−2
+    keep = None
+    if lost is not None and np.any(lost):
+        # a lost sample reaches the residual at k − 1 … k + 1 and the low-pass spreads it by ~2/f_c
+        reach = int(math.ceil(2.0 * fs / cutoff_hz)) + 1
+        hit = np.convolve(np.asarray(lost, dtype=float), np.ones(2 * reach + 1), mode="same") > 0
+        keep = np.ascontiguousarray((~hit[1:-1][::decimation]).astype(float))
     return ResidualProblem(
         sample_rate_hz=fs, spline=spline, acceleration=acc, velocity=vel, torque=trq,
         sos=sos, cutoff_hz=float(cutoff_hz), decimation=decimation, zi=zi, padlen=padlen, initial_twist_rad=twist0,
         load_position=xl,
         acceleration_f=lp(acc), velocity_f=lp(vel), torque_f=lp(trq),
         coulomb=coul, coulomb_f=lp(np.ascontiguousarray(coul)), torque_rate_f=lp(np.ascontiguousarray(rate)),
-        torque_ref=np.ascontiguousarray(tau), velocity_scale_rad_s=float(velocity_scale_rad_s),
+        torque_ref=np.ascontiguousarray(tau), velocity_scale_rad_s=float(velocity_scale_rad_s), keep=keep,
     )
 
 

@@ -151,4 +151,16 @@ class Identification:
             out["model_selection"] = dict(self.selection)
         if self.measured_band_hz is not None:
             out["measured_band_hz"] = [float(v) for v in self.measured_band_hz]
-        return out
+        return _finite(out)
+
+
+def _finite(x: Any) -> Any:
+    """``x`` with every non-finite float as None: JSON has no NaN or infinity (an interval without an
+    end, a standard error the fit could not give)."""
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(x) else None
+    return x

@@ -120,6 +120,8 @@ def projected_cell(problem: ResidualProblem, rates: LoadRates, epsilon_rad: floa
         cols.append(problem.coulomb_f)
     target = problem.lagged_torque_f(lag_s)
     A = np.stack(cols, axis=1)
+    if problem.keep is not None:  # samples a streamed link lost are no evidence
+        A, target = A * problem.keep[:, None], target * problem.keep
     sc = np.sqrt(np.sum(A * A, axis=0))
     sc[sc == 0.0] = 1.0
     coef = np.linalg.lstsq(A / sc, target, rcond=None)[0] / sc
