@@ -12,25 +12,16 @@ One loop model: the open-loop Bode plot and every margin on the page come from
 used, whose margins are controller.json's. The plant a verification ran on comes from the run
 (``true_plant``: the simulator's machine of a ``--sim`` run, or of a replayed log that says so).
 
-Figures are inline SVG drawn by :mod:`commission.svgplot`, with one inline script that zooms
-the x axis of line plots: no external script, stylesheet link or image file, so the page opens
-offline on any laptop. Each is a ``<figure class="plot" id="fig-…">`` holding one ``<svg>``. What the identification section shows is *recomputed* here from the
-Recording and the Identification with the identifier's public functions (the Identification
-holds numbers, not curves):
-
-* FRD of τ_ref → v_m (:func:`commission.ident.frd.estimate_frd`), and the FRD after the
-  backlash's effect is removed — the paper's step 6, output form:
-  v_lin = v_m − (v̂_m(ε̂) − v̂_m(0)) with the identified parameters
-  (:func:`commission.ident.backlash.simulate_deadzone`);
-* the fitted model and, for simulated runs, the true plant, both as sampled responses
-  H(j2πf)·e^{−j2πf·T_d}·sinc²(f/f_s) (one-sample delay, zero-order hold and the drive's
-  backward-difference velocity), so that they lie on the measured FRD;
-* the measured motor velocity against the dead-zone simulation with ε̂ (and with ε = 0 for
-  contrast), over the whole run and zoomed on the gap traversal where backlash shows most;
-* the output error RMS(v_m − v̂_m(ε)) over ε with the other parameters at their identified
-  values (a profile computed here, one simulation per ε), and the identifier's own search
-  history when its stage detail carries one (see :func:`search_history`);
-* the step-5 FRD error per iteration.
+Figures are inline SVG (:mod:`commission.svgplot`, one ``<figure class="plot" id="fig-…">`` each)
+with one inline zoom script, so the page opens offline on any laptop. The identification
+section's curves are *recomputed* here from the Recording and the Identification (which holds
+numbers, not curves) with the identifier's public functions: the measured FRD and the FRD with
+the backlash's effect removed (the paper's step 6, output form, v_m − (v̂_m(ε̂) − v̂_m(0))); the
+fitted model and, for simulated runs, the true plant as sampled responses
+H(j2πf)·e^{−j2πf·T_d}·sinc²(f/f_s), so that they lie on the measured FRD; the measured motor
+velocity against the dead-zone simulation with ε̂ and with ε = 0, whole and zoomed on the gap
+traversal; the output-error profile over ε with the identifier's own search history
+(:func:`search_history`); the step-5 FRD error per iteration.
 
 Public API: :func:`write_report`, :func:`render_report` (the HTML text), :func:`search_history`.
 """
@@ -77,9 +68,7 @@ _PROFILE_POINTS = 21
 _PROFILE_NEAR = 8
 
 
-# ---------------------------------------------------------------------------------------------
-# inputs
-# ---------------------------------------------------------------------------------------------
+# --- inputs ----------------------------------------------------------------------------------
 def search_history(identification: Any) -> list[dict[str, Any]]:
     """The identifier's evaluations of its ε search, in order, from its stage details.
 
@@ -114,9 +103,7 @@ def search_history(identification: Any) -> list[dict[str, Any]]:
     return out
 
 
-# ---------------------------------------------------------------------------------------------
-# the numbers behind the figures
-# ---------------------------------------------------------------------------------------------
+# --- the numbers behind the figures ----------------------------------------------------------
 @dataclass(frozen=True)
 class _Curves:
     frd: Any                                   # FRD of the measurement
@@ -235,9 +222,7 @@ def _zoom_window(rec: Recording, c: _Curves, eps: float) -> tuple[int, int, str]
     return max(0, i - half), min(n, i + half), f"a motor-velocity reversal at t = {i / fs:.4f} s"
 
 
-# ---------------------------------------------------------------------------------------------
-# identification figures
-# ---------------------------------------------------------------------------------------------
+# --- identification figures ------------------------------------------------------------------
 def _db(h: NDArray[np.complex128]) -> NDArray[np.float64]:
     return 20.0 * np.log10(np.maximum(np.abs(h), 1e-300))
 
@@ -413,9 +398,7 @@ def _fig_iterations(ident: Any) -> str:
     return fig.svg("fig-iterations")
 
 
-# ---------------------------------------------------------------------------------------------
-# tuning and verification figures
-# ---------------------------------------------------------------------------------------------
+# --- tuning and verification figures ---------------------------------------------------------
 def _fmt_hz(f: float) -> str:
     return f"{f / 1e3:.3g} kHz" if f >= 1e3 else f"{f:.3g} Hz"
 
@@ -517,9 +500,7 @@ def _fig_move(v: Any, scenario: str, fig_id: str, title: str) -> str | None:
     return _verification_fig(fig_id, title, panels)
 
 
-# ---------------------------------------------------------------------------------------------
-# HTML
-# ---------------------------------------------------------------------------------------------
+# --- HTML ------------------------------------------------------------------------------------
 _CSS = """
 body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,'DejaVu Sans',sans-serif;margin:0;color:#1d1d1f;background:#f6f7f9}
 main{max-width:1100px;margin:0 auto;padding:16px 24px 48px}

@@ -1,81 +1,48 @@
-"""The drift-free torque residual of the motor equation (METHOD.md, "What works" 1–3).
+"""The motor-equation torque residual and the load-state observer behind it (METHOD.md, "What works").
 
-Instead of simulating the whole two-mass system open loop from τ_ref (which
-drifts: a 1 % DC-gain error moves the motor ~0.2 rad/s), the *load* alone is
-simulated, driven through the dead-zone spring by the *measured* motor
-position. The motor equation is then checked as a torque balance::
+The load alone is simulated, driven through the dead-zone spring by the *measured* motor
+position, and the motor equation is checked as a torque balance at samples 1 … N−2::
 
-    r = J_m·ẍ_m + B_m·ẋ_m + τ_s(sim) − τ_ref          [N·m]
+    e = J_m·ẍ_m + B_m·ẋ_m (+ F_cm·tanh(ẋ_m/v_s)) + τ_s(sim) − τ      [N·m]
 
-Nothing integrates open loop (the spring ties the simulated load to the real
-motor), so the residual has no drift, and its minimum in ε is sharp.
+Nothing integrates open loop against the real motor, so e has no drift and its minimum in ε is
+sharp. :func:`residual_vector` is the objective of :mod:`commission.ident.estimator`.
 
-Sample alignment (derived, not tuned)
--------------------------------------
-Data convention of the drive: at tick k the encoder is latched, x[k] = x_m(k·Ts),
-v[k] = (x[k] − x[k−1])/Ts, then τ_ref[k] is applied by a zero-order hold over
-[k·Ts, (k+1)·Ts). Integrating ẍ twice against the triangle kernel
-w(s) = 1 − |s| on s ∈ [−1, 1] (time k·Ts + s·Ts) gives the exact identity::
+Observer (:class:`Observer`, applied inside :func:`_simulate_load`). Over many impacts a load
+simulated open loop parts from the real one (the bouncing in the gap is chaotic). So after each
+sample interval k is integrated, its residual e_k, low-passed by a causal biquad, moves the
+simulated load by ``gain``·ẽ_k [rad per N·m] (and, with a load encoder, by a fraction of its
+distance to the measured position). The move is spread as a ramp over the next interval, so the
+load's state stays continuous and contact and separation are located as always: the residual
+stays a continuous function of the parameters. e is then the one-step prediction error of a
+fixed-gain predictor of the load state; gain 0 (:data:`OPEN_LOOP`) is the open-loop residual.
 
-    (x[k+1] − 2x[k] + x[k−1]) / Ts² = ∫ w(s)·ẍ_m(k+s) ds
+Sample alignment (derived, not tuned). At tick k the encoder is latched, x[k] = x_m(k·Ts), then
+τ_ref[k] is held over [k·Ts, (k+1)·Ts). The triangle kernel w(s) = 1 − |s| on s ∈ [−1, 1] gives
+the exact identity (x[k+1] − 2x[k] + x[k−1])/Ts² = ∫ w(s)·ẍ_m(k+s) ds, so every term of the motor
+equation is averaged with the same kernel: τ_ref (ZOH) exactly as (τ_ref[k−1] + τ_ref[k])/2;
+ẋ_m as (x[k+1] − x[k−1])/(2·Ts) (O(Ts²)); τ_s = K·y + D·ẏ from the integrals of y the simulation
+accumulates over each interval, ∫ w·ẏ by parts (y is continuous across contact and separation,
+so the impact torque D·ẏ is integrated exactly). This is METHOD.md's "one sample of delay"
+handled in the time domain; the backward-difference velocity is not used.
 
-so every term of the motor equation is averaged with the same kernel:
+Load simulation. The motor position between samples is a cubic (:func:`motor_interpolant`). In
+contact the load obeys a linear ODE driven by it: a whole interval is mapped exactly
+(:func:`contact_map`), parts of an interval (between events) and contact steps with load Coulomb
+friction take RK4 steps; in the gap the load decays analytically (viscous) or by RK4 with
+friction. Contact and separation are located inside the step (Hermite interpolant of the gap
+variable checked at interior points for grazes, then bisection), so the residual is a smooth
+function of ε and the load parameters, as finite-difference Jacobians need.
 
-* τ_ref (ZOH):  ∫ w·τ_ref = (τ_ref[k−1] + τ_ref[k]) / 2          (exact)
-* B_m·ẋ_m:      ∫ w·ẋ_m  ≈ (x[k+1] − x[k−1]) / (2·Ts)             (O(Ts²·ẍ'))
-* τ_s = K·y + D·ẏ:  ∫ w·y from integrals of y the simulation accumulates over
-  each sample interval, and ∫ w·ẏ = (ȳ_k − ȳ_{k−1})/Ts by parts (y is continuous
-  across contact and separation, so the impact torque D·ẏ is integrated exactly).
+Optional terms: motor Coulomb friction, a regressor linear in F_cm (``ResidualProblem.coulomb``,
+the triangle average of tanh(ẋ_m/v_s) by Gauss–Legendre); load Coulomb friction F_cl·tanh(ẋ_l/v_s)
+in the load simulation, where explicit RK4 steps in the smooth sign's stiff zone are cut so that
+rate·h stays below RK4's stability limit (:data:`_STIFF_STEP`) and v_s stays the stated one; a
+first-order current-loop lag T_c·τ̇ = τ_ref − τ (:func:`lagged_torque`, exact for a held τ_ref).
 
-This is the "one sample of delay" of METHOD.md handled in the time domain: half
-a sample from the ZOH (τ_ref[k−1] and τ_ref[k] both act on x[k±1]) and the
-backward-difference velocity is not used at all (positions are).
-
-Load simulation
----------------
-The motor position between samples is a cubic through the latched positions
-(:func:`motor_interpolant`). In contact the load obeys a linear ODE driven by that cubic: a whole
-sample interval is mapped exactly (:func:`contact_map`, one matrix exponential per simulation);
-parts of an interval (between events), and every contact step when load Coulomb friction is
-modelled, take one RK4 step each. In the gap the load decays analytically (viscous). The exact
-map changed no result on the plants the model describes; on the impact-rich stiff light 200 Hz
-bench plant the residual at the true parameters fell from 2.1 % to 1.35 % of τ_ref (one RK4
-step per sample is off by ~1e-8 per interval at ω·Ts = 0.16, and chaotic impacts amplify it).
-A simulation without load friction takes 1.7 instead of 2.8 ms (10 s at 8 kHz); the joint fit
-models load friction only when the ε search found friction (:mod:`commission.ident.hybrid`).
-Contact and separation are located inside the step (Hermite interpolation of
-the gap variable, checked at interior points so that grazing contacts are
-found, then bisection), so the residual is a smooth function of ε and of the
-load parameters — a requirement for finite-difference Jacobians.
-
-Optional terms (issue 8)
-------------------------
-* Motor Coulomb friction F_cm·tanh(ẋ_m/v_s): a regressor of the motor equation, linear in
-  F_cm (``ResidualProblem.coulomb``: triangle average of tanh(ẋ_m/v_s), ẋ_m from the
-  position interpolant, 8-point Gauss–Legendre per interval).
-* Load Coulomb friction F_cl·tanh(ẋ_l/v_s): in the load simulation (contact: inside RK4;
-  gap: RK4 on Ts/4 sub-steps instead of the exact viscous decay). Explicit RK4 on the stiff
-  zone of tanh needs rate·h below its stability limit 2.785, rate = (F_cl/J_l)/v_s: a step
-  whose load speed is (or may get) within a few v_s of zero is cut into ceil(rate·h/2)
-  sub-steps (:func:`_simulate_load`, :func:`_gap_state`, :data:`_STIFF_STEP`), so v_s stays the
-  stated one. (Widening v_s instead, as before, biased
-  ε by 0.025° at 0.03 N·m per side: v_s became 10× the stated one.)
-* Current-loop lag T_c·τ̇ = τ_ref − τ: :func:`lagged_torque`, exact for held τ_ref.
-Measured with the true parameters on sim_drive's plant (0.01 N·m per side, sim v_s = 1e-3):
-RMS residual / RMS τ_ref 0.0018–0.0026 for v_s = 1e-3 … 1e-2 here (0.12 without friction;
-0.039 with all the friction lumped on the motor side), the excess over the 0.0003 noise
-floor sitting in the few stick windows at velocity reversals (burst-dropped in the fit).
-
-Motor position between samples: :func:`motor_interpolant` ("local", Catmull–Rom, by
-default; a global spline spreads each impact's kink and biased impact-rich plants).
-
-Filtering
----------
-The second difference of a quantised position is blue noise. The residual is
-low-passed zero-phase (Butterworth, ``scipy.signal.sosfiltfilt``) and then
-decimated to about twice the cut-off, so that its samples are roughly
-independent (the effective degrees of freedom used for intervals in
-:mod:`commission.ident.jointfit`).
+Filtering. The second difference of a quantised position is blue noise, so the residual is
+low-passed zero-phase (Butterworth, as ``scipy.signal.sosfiltfilt``) and decimated to about twice
+the cut-off, where its samples are roughly independent.
 """
 
 from __future__ import annotations
@@ -114,10 +81,8 @@ _HERMITE_BOUND = 0.15
 #: Load speeds within this many v_s of zero are in the smooth sign's stiff zone (tanh' < 2e-4 outside).
 _STIFF_ZONE = 5.0
 #: rate·h per RK4 sub-step where the smooth sign is stiff (rate = (F_cl/J_l)/v_s; RK4 is stable up
-#: to 2.785). At 2 the fast mode decays by R(−2) = 1/3 per sub-step (exactly: e^−2 = 0.14). Measured
-#: against Radau (tests/test_residual.py's stiff-friction case): load velocity within 2e-8 of its
-#: range (4e-9 at 1, as before); bench/bench_seeds.py 0.03 N·m seeds 1–9: 4.1 → 3.4 s mean, 17.6k
-#: instead of 35k sub-steps per simulation, same tolerances met. (2.5 gained no more.)
+#: to 2.785, and at 2 the fast mode still decays by R(−2) = 1/3 per sub-step): half the sub-steps of
+#: 1, close to Radau and within the bench's tolerances (measured: see bench/results/RESULTS.md).
 _STIFF_STEP = 2.0
 #: |v_l|/v_s beyond which the smooth sign is ±1 in float64 (tanh(x) = 1 − 2e^(−2x): 1 − 4e−22 at
 #: 25, below half an ulp) at both ends of a contact interval: the load friction is then a
@@ -131,12 +96,9 @@ _MAX_PARTS = 200
 _MAX_STIFF_PARTS = 64
 
 
-# ----------------------------------------------------------------------------
-# compiled core (module level so that numba's cache=True works)
-# error_model="numpy": no Python division checks in the loops; the step functions inlined.
-# Same arithmetic, bit-identical results; measured 4.0 → 2.5 ms per load simulation
-# (10 s, 8 kHz, reference plant).
-# ----------------------------------------------------------------------------
+# --- compiled core (module level, so that numba's cache=True works) ----------
+# error_model="numpy" drops Python's division checks from the loops and the step functions are
+# inlined: the same arithmetic, bit-identical results, markedly faster.
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _motor(c: NDArray[np.float64], k: int, s: float) -> tuple[float, float]:
     """Motor position [rad] and d/ds [rad per sample] at k + s from spline coefficients c (N−1, 4)."""
@@ -324,31 +286,26 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
                               NDArray[np.float64], int, NDArray[np.float64], NDArray[np.float64]]:
     """Load driven by the spline motor position through the dead-zone spring, corrected after every
-    sample by the observer (``gain`` = 0: open loop).
+    sample by the observer (``gain`` = 0: open loop; module docstring).
 
     Returns (I0, I1, xl, vl, events, e, el): I0[k] = ∫₀¹ y(k+s) ds, I1[k] = ∫₀¹ s·y(k+s) ds over each
     of the N−1 sample intervals [rad]; xl, vl the load state at the N samples; events the number of
     contact/separation events located; e the motor-equation residual at samples 1 … N−2 [N·m],
-    ``motor_part`` + the triangle-averaged shaft torque (``motor_part`` = J_m·Δ²x/Ts² + B_m·v (+ F_cm·sgn)
-    − τ at samples 1 … N−2); el the load position's prediction error x_l,sim − x_l,meas at samples
-    0 … N−1 before each correction [rad] (zeros without a load encoder).
+    ``motor_part`` (J_m·Δ²x/Ts² + B_m·v (+ F_cm·sgn) − τ) + the triangle-averaged shaft torque; el the
+    load position's prediction error x_l,sim − x_l,meas at samples 0 … N−1 before each correction
+    [rad] (zeros without a load encoder).
 
-    Observer. When sample k's interval is integrated, its residual e_k is known (the triangle kernel
-    spans k − 1 … k + 1). It is filtered by the causal biquad ``lp`` = (b0, b1, b2, a1, a2) and moves
-    the load by ``gain``·ẽ_k [rad per N·m]; with a load encoder (``load_meas``, shape (N,), else
-    shape (0,)) also by the fraction ``load_gain`` of its distance to the measured position. The move
-    is spread over the next interval, as a ramp on the motor position the load sees (an offset that
-    accumulates): the load's state stays continuous and contact and separation are located as
-    always, so the residual stays a continuous function of the parameters (a jump of the load's
-    position would switch modes at once, without event location, and kink the cost).
+    Observer: e_k is known once interval k is integrated (the triangle kernel spans k − 1 … k + 1);
+    the causal biquad ``lp`` = (b0, b1, b2, a1, a2) filters it, and the correction ``gain``·ẽ_k
+    (minus ``load_gain`` times the load-position error when ``load_meas`` has shape (N,), else (0,))
+    is applied as a ramp on the motor position the load sees over the next interval: a jump of the
+    load's position would switch modes without event location and kink the cost.
 
-    Events. Separation (contact → gap): the penetration p = side·y is scanned on the cubic
-    Hermite interpolant of the step (end values and slopes, interior points for grazing), the
-    first root is bracketed and bisected on the interpolant, then polished by Newton steps on the
-    *actual* RK4 step length (p and dp/ds of the RK4 solution), so the switch happens where the
-    integrated trajectory really reaches the boundary (matters for stiff, impact-rich plants:
-    the impact torque D·ẏ is switched off there). Contact (gap → contact): the load moves
-    analytically and the motor is the spline, so |z| = ε is bisected on the exact z(s).
+    Events. Separation: the penetration p = side·y is scanned on the step's cubic Hermite
+    interpolant (interior points for grazes), bisected, then polished by Newton steps on the actual
+    RK4 step length, so that the impact torque D·ẏ is switched off where the integrated trajectory
+    really reaches the boundary. Contact: the load moves analytically and the motor is the spline,
+    so |z| = ε is bisected on the exact z(s).
     """
     m = c.shape[0]
     I0 = np.zeros(m)
@@ -394,11 +351,9 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
             if guard > _MAX_PARTS:  # pathological chattering: finish the step in the current mode
                 break
             if side != 0.0:
-                # --- contact: one step (exact or RK4, plus quadrature of y and s·y) to the end of the
-                # interval, or to the end of a sub-step where the load Coulomb smooth sign is stiff: its
-                # rate cj·ivs at v = 0 needs rate·h ≤ _STIFF_STEP, so a step whose load speed is within
-                # _STIFF_ZONE·v_s of zero, or could get there at the start's acceleration, is cut
-                # into ceil(rate·h/_STIFF_STEP) parts (the while loop takes them as it takes partial steps)
+                # --- contact: one step (exact or RK4, plus quadrature of y and s·y) to the interval's end,
+                # cut into ceil(rate·h/_STIFF_STEP) parts where the load speed is, or may get, within
+                # _STIFF_ZONE·v_s of zero (the stiff zone of the Coulomb smooth sign, rate cj·ivs)
                 send = 1.0
                 if cj != 0.0:
                     rate_h = cj * ivs * (1.0 - s) * Ts / _STIFF_STEP
@@ -421,7 +376,7 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                                                                   sg * cj / kj)
                         exact = vn * sg * ivs > _SATURATED
                 if not exact:
-                    if send == 1.0:  # with the interval's end a constant (measured: a few % faster)
+                    if send == 1.0:  # the interval's end as a constant: a few % faster
                         xn, vn, i0, i1, p1, dp1e = _rk4_contact(cs, 0, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj,
                                                                 cj, ivs)
                     else:
@@ -631,9 +586,7 @@ def _shaft_torque_tri(I0: NDArray[np.float64], I1: NDArray[np.float64], K: float
     return out
 
 
-# ----------------------------------------------------------------------------
-# public API
-# ----------------------------------------------------------------------------
+# --- public API --------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class ResidualProblem:
     """Everything about one recording the residual needs, computed once.
@@ -641,49 +594,32 @@ class ResidualProblem:
     Arrays indexed by the residual's samples k = 1 … N−2 (length N−2) unless stated.
     """
 
-    sample_rate_hz: float
-    """Sample rate [Hz]."""
-    spline: NDArray[np.float64]
-    """Cubic coefficients of the motor position (:func:`motor_interpolant`), shape (N−1, 4),
-    per sample interval, s ∈ [0, 1]."""
-    acceleration: NDArray[np.float64]
-    """(x[k+1] − 2x[k] + x[k−1]) / Ts² [rad/s²]."""
-    velocity: NDArray[np.float64]
-    """(x[k+1] − x[k−1]) / (2·Ts) [rad/s]."""
-    torque: NDArray[np.float64]
-    """(τ_ref[k−1] + τ_ref[k]) / 2 [N·m]."""
-    sos: NDArray[np.float64]
-    """Zero-phase low-pass (second-order sections) applied to the residual."""
-    cutoff_hz: float
-    """Low-pass cut-off [Hz]."""
-    decimation: int
-    """Keep every ``decimation``-th filtered sample (≈ independent samples)."""
-    zi: NDArray[np.float64]
-    """Steady-state initial conditions of the sections (scipy.signal.sosfilt_zi)."""
-    padlen: int
-    """Odd-extension length at each end (as scipy.signal.sosfiltfilt)."""
-    initial_twist_rad: float
-    """x_m − x_l at sample 0 [rad] (0: the gears start centred in the gap, at rest)."""
-    load_position: NDArray[np.float64] | None
-    """Measured load position at samples 0 … N−1 [rad], when a load encoder is present."""
+    sample_rate_hz: float  # [Hz]
+    spline: NDArray[np.float64]  # motor-position cubic per interval, s ∈ [0, 1] (N−1, 4)
+    acceleration: NDArray[np.float64]  # (x[k+1] − 2x[k] + x[k−1]) / Ts² [rad/s²]
+    velocity: NDArray[np.float64]  # (x[k+1] − x[k−1]) / (2·Ts) [rad/s]
+    torque: NDArray[np.float64]  # (τ_ref[k−1] + τ_ref[k]) / 2 [N·m]
+    sos: NDArray[np.float64]  # zero-phase low-pass of the residual (second-order sections)
+    cutoff_hz: float  # its cut-off [Hz]
+    decimation: int  # keep every decimation-th filtered sample (≈ independent samples)
+    zi: NDArray[np.float64]  # steady-state initial conditions of the sections (sosfilt_zi)
+    padlen: int  # odd-extension length at each end (as scipy.signal.sosfiltfilt)
+    initial_twist_rad: float  # x_m − x_l at sample 0 [rad] (0: at rest, centred in the gap)
+    load_position: NDArray[np.float64] | None  # measured, samples 0 … N−1 [rad]; None: no encoder
     # pre-filtered, decimated regressors of the motor equation
     acceleration_f: NDArray[np.float64]
     velocity_f: NDArray[np.float64]
     torque_f: NDArray[np.float64]
-    coulomb: NDArray[np.float64] | None = None
-    """Motor Coulomb regressor tanh(ẋ_m/v_s), triangle-averaged, at samples 1 … N−2 [-]."""
-    coulomb_f: NDArray[np.float64] | None = None
-    """Low-passed, decimated motor Coulomb regressor tanh(ẋ_m/v_s) [-] (the column of F_cm)."""
+    coulomb: NDArray[np.float64] | None = None  # tanh(ẋ_m/v_s), triangle-averaged, 1 … N−2 [-]
+    coulomb_f: NDArray[np.float64] | None = None  # the same low-passed, decimated: F_cm's column
+    #: Low-passed, decimated Δτ_ref/Ts [N·m/s]: the current-loop-lag column (τ ≈ τ_ref − T_c·τ̇_ref),
+    #: which starts T_c by linear projection.
     torque_rate_f: NDArray[np.float64] | None = None
-    """Low-passed, decimated Δτ_ref/Ts [N·m/s]: the first-order current-loop-lag column
-    (τ ≈ τ_ref − T_c·τ̇_ref), used to start T_c by linear projection."""
-    torque_ref: NDArray[np.float64] | None = None
-    """The raw torque reference [N·m] (samples 0 … N−1), for the lagged torque."""
-    velocity_scale_rad_s: float = 2e-3
-    """Velocity scale v_s of the smooth sign tanh(v/v_s) of both Coulomb terms [rad/s]."""
+    torque_ref: NDArray[np.float64] | None = None  # raw, samples 0 … N−1 [N·m], for lagged_torque
+    velocity_scale_rad_s: float = 2e-3  # v_s of both Coulomb terms' smooth sign tanh(v/v_s) [rad/s]
+    #: Weight (1 or 0) of each decimated motor-block sample: 0 where a sample the link lost reaches
+    #: the residual through the triangle kernel and the low-pass (None: every sample counts).
     keep: NDArray[np.float64] | None = None
-    """Weight (1 or 0) of each decimated motor-block sample: 0 where a sample the link lost reaches
-    the residual through the triangle kernel and the low-pass (None: every sample counts)."""
 
     @property
     def n_samples(self) -> int:
@@ -713,31 +649,21 @@ class ResidualProblem:
 class LoadSimulation:
     """The simulated load of one residual evaluation."""
 
-    shaft_torque: NDArray[np.float64]
-    """Triangle-averaged shaft torque K·y + D·ẏ at samples 1 … N−2 [N·m]."""
-    load_position: NDArray[np.float64]
-    """Simulated load position at samples 0 … N−1 [rad]."""
-    load_velocity: NDArray[np.float64]
-    """Simulated load velocity at samples 0 … N−1 [rad/s]."""
-    events: int
-    """Contact and separation events located inside steps."""
-    residual: NDArray[np.float64]
-    """Motor-equation residual at samples 1 … N−2 [N·m] (zeros' shaft torque when no motor part
-    was given)."""
-    load_error: NDArray[np.float64]
-    """With a load encoder: x_l,sim − x_l,meas at samples 0 … N−1, before each correction [rad]."""
+    shaft_torque: NDArray[np.float64]  # triangle-averaged K·y + D·ẏ at samples 1 … N−2 [N·m]
+    load_position: NDArray[np.float64]  # simulated, samples 0 … N−1 [rad]
+    load_velocity: NDArray[np.float64]  # simulated, samples 0 … N−1 [rad/s]
+    events: int  # contact and separation events located inside steps
+    residual: NDArray[np.float64]  # motor equation at 1 … N−2 [N·m] (shaft torque if no motor part)
+    load_error: NDArray[np.float64]  # with a load encoder: x_l,sim − x_l,meas, 0 … N−1 [rad]
 
 
 @dataclass(frozen=True, eq=False)
 class Residual:
     """Result of :func:`torque_residual`."""
 
-    residual: NDArray[np.float64]
-    """Low-passed (not decimated) motor-equation residual at samples 1 … N−2 [N·m]."""
-    vector: NDArray[np.float64]
-    """Decimated residual vector fed to least squares [N·m] (motor block, then load block)."""
-    cost: float
-    """RMS of ``vector`` [N·m]."""
+    residual: NDArray[np.float64]  # low-passed (not decimated), samples 1 … N−2 [N·m]
+    vector: NDArray[np.float64]  # decimated, fed to least squares (motor, then load block) [N·m]
+    cost: float  # RMS of vector [N·m]
     simulation: LoadSimulation
 
 
@@ -852,11 +778,8 @@ def motor_interpolant(x: NDArray[np.float64], interpolation: str = "local") -> N
     ``"spline"``: the not-a-knot cubic spline (C², error O(Ts⁴) on smooth motion). It is
     *global*: at an impact the motor acceleration jumps (D·ẏ switches) and the spline spreads
     that kink over many samples (ringing, decaying ×0.27 per sample), biasing the simulated
-    load around every impact. ``"local"``: cubic Hermite with central-difference slopes
-    (Catmull–Rom, C¹, error O(Ts³)): a kink disturbs only the two intervals beside it.
-    Measured with the true parameters (bench plants, 24-bit encoder, 1e-4 N·m noise), RMS of
-    the kept residual / RMS τ_ref: stiff 300 Hz (impact-rich) 0.0106 → 0.00054, bursts
-    55 % → 47 %; reference, ζ = 0.07 and stiff light 200 Hz: 0.00030 either way.
+    load around every impact. ``"local"`` (the default): cubic Hermite with central-difference
+    slopes (Catmull–Rom, C¹, error O(Ts³)): a kink disturbs only the two intervals beside it.
     """
     n = x.shape[0]
     if interpolation == "spline":
@@ -914,31 +837,21 @@ def _lagged_torque(u: NDArray[np.float64], e: float, g1: float, g2: float) -> ND
 
 @dataclass(frozen=True, eq=False)
 class Observer:
-    """The load-state observer of the residual (gain 0: the load simulated open loop).
+    """The load-state observer of the residual (module docstring; gain 0: open loop).
 
-    Over many impacts of a light, stiff or lightly damped load, the load simulated open loop from
-    the sampled motor position parts from the real one (the bouncing in the gap is chaotic), and
-    even the true parameters leave a large residual. Corrected after every sample by its own
-    motor-equation residual e (x_l += gain·ẽ, ẽ = e through a causal low-pass that keeps the
-    encoder's quantization noise out of the correction), the simulated load follows the real one:
-    the residual is then the one-step prediction error of a fixed-gain predictor whose state is the
-    load's, the estimator a prediction-error method (Ljung, *System Identification*, ch. 7).
-    The gain is fixed for a fit (it is not a parameter: a stronger correction always lowers the
-    residual, so the fit would take the largest), from a bandwidth and the start's K and D.
+    The residual is then the one-step prediction error of a fixed-gain predictor whose state is the
+    load's, the estimator a prediction-error method (Ljung, *System Identification*, ch. 7). The
+    low-pass keeps the encoder's quantization noise out of the correction. The gain is fixed for a
+    fit, from a bandwidth and the start's K and D: as a parameter the fit would take the largest,
+    since a stronger correction always lowers the residual.
     """
 
-    gain_rad_per_nm: float = 0.0
-    """Load-position correction per N·m of filtered residual [rad/(N·m)]."""
+    gain_rad_per_nm: float = 0.0  # load-position correction per N·m of filtered residual
+    #: Causal biquad on the residual before the correction: (b0, b1, b2, a1, a2).
     lowpass: NDArray[np.float64] = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0, 0.0]))
-    """Causal biquad on the residual before the correction: (b0, b1, b2, a1, a2)."""
-    bandwidth_hz: float = 0.0
-    """Bandwidth of the correction: the fraction 1 − exp(−2π·bandwidth/fs) of a twist error is
-    removed per sample [Hz]."""
-    filter_hz: float | None = None
-    """Cut-off of the low-pass on the residual [Hz] (None: none)."""
-    load_gain: float = 0.0
-    """With a load encoder: the fraction of the way to the measured load position the simulated one
-    moves after each sample [-]."""
+    bandwidth_hz: float = 0.0  # 1 − exp(−2π·bandwidth/fs) of a twist error is removed per sample
+    filter_hz: float | None = None  # cut-off of the low-pass on the residual [Hz] (None: none)
+    load_gain: float = 0.0  # with a load encoder: fraction of the way to its position per sample
 
     @classmethod
     def design(cls, sample_rate_hz: float, bandwidth_hz: float, filter_hz: float | None, K: float,
