@@ -397,25 +397,14 @@ def _prepare(params: TwoMassParameters, epsilon_rad: float, torque_ref: ArrayLik
     if not np.all(np.isfinite(p)) or params.J_m <= 0.0 or params.J_l <= 0.0:
         raise IdentificationError(f"invalid two-mass parameters: {params}")
     ini = initial if initial is not None else DeadzoneState()
-    x0 = np.array([
-        ini.motor_position,
-        ini.motor_velocity,
-        ini.motor_position - ini.load_position,
-        ini.load_velocity,
-    ])
+    x0 = np.array([ini.motor_position, ini.motor_velocity, ini.motor_position - ini.load_position,
+                   ini.load_velocity])
     return [float(v) for v in p], tau, x0, ini
 
 
-def simulate_deadzone(
-    params: TwoMassParameters,
-    epsilon_rad: float,
-    torque_ref: ArrayLike,
-    sample_rate_hz: float,
-    *,
-    delay_samples: int = 1,
-    initial: DeadzoneState | None = None,
-    locate_events: bool = True,
-) -> DeadzoneResponse:
+def simulate_deadzone(params: TwoMassParameters, epsilon_rad: float, torque_ref: ArrayLike,
+                      sample_rate_hz: float, *, delay_samples: int = 1, initial: DeadzoneState | None = None,
+                      locate_events: bool = True) -> DeadzoneResponse:
     """Simulate the open-loop two-mass model with dead-zone backlash, driven by torque.
 
     :param params: linear two-mass parameters.
@@ -423,9 +412,8 @@ def simulate_deadzone(
         one linear mode, exact).
     :param torque_ref: motor torque reference [N·m], shape (N,), zero-order hold.
     :param sample_rate_hz: 1/Ts [Hz].
-    :param delay_samples: d ≥ 0. ``torque_ref[j − d + 1]`` acts over
-        ``[j·Ts, (j+1)·Ts)``; d = 1 is the drive's convention (``velocity[k]``
-        reflects torques up to k − 1). See the module docstring.
+    :param delay_samples: d ≥ 0, ``torque_ref[j − d + 1]`` acts over ``[j·Ts, (j+1)·Ts)``
+        (module docstring; 1 is the drive's convention).
     :param initial: state at t = 0; default at rest, twist 0 (centre of the gap).
     :param locate_events: locate contacts/separations inside the step (default).
         ``False`` decides the mode once per sample from the twist at the tick
@@ -437,36 +425,18 @@ def simulate_deadzone(
     xm, z, xl, vm, vl, vm_i, vl_i, ts, s_end, events = _simulate_core(
         *pv, float(epsilon_rad), h, tau, int(delay_samples) - 1, x0, bool(locate_events), True
     )
-    final = DeadzoneState(
-        motor_position=float(s_end[0]),
-        motor_velocity=float(s_end[1]),
-        load_position=float(s_end[0] - s_end[2]),
-        load_velocity=float(s_end[3]),
-    )
+    final = DeadzoneState(motor_position=float(s_end[0]), motor_velocity=float(s_end[1]),
+                          load_position=float(s_end[0] - s_end[2]), load_velocity=float(s_end[3]))
     return DeadzoneResponse(
-        motor_velocity=vm,
-        motor_position=xm,
-        load_velocity=vl,
-        load_position=xl,
-        twist=z,
-        shaft_torque=ts,
-        motor_velocity_instant=vm_i,
-        load_velocity_instant=vl_i,
-        final_state=final,
-        n_events=int(events),
+        motor_velocity=vm, motor_position=xm, load_velocity=vl, load_position=xl, twist=z, shaft_torque=ts,
+        motor_velocity_instant=vm_i, load_velocity_instant=vl_i, final_state=final, n_events=int(events),
     )
 
 
-def simulate_motor_velocity(
-    params: TwoMassParameters,
-    epsilon_rad: float,
-    torque_ref: ArrayLike,
-    sample_rate_hz: float,
-    *,
-    delay_samples: int = 1,
-    initial: DeadzoneState | None = None,
-    locate_events: bool = True,
-) -> NDArray[np.float64]:
+def simulate_motor_velocity(params: TwoMassParameters, epsilon_rad: float, torque_ref: ArrayLike,
+                            sample_rate_hz: float, *, delay_samples: int = 1,
+                            initial: DeadzoneState | None = None, locate_events: bool = True
+                            ) -> NDArray[np.float64]:
     """Only ``simulate_deadzone(...).motor_velocity`` [rad/s], shape (N,): the fast path for
     losses (bitwise the same values; one output array instead of ten, which costs more than
     the loop)."""
@@ -484,12 +454,8 @@ def deadzone(x: ArrayLike, epsilon_rad: float) -> NDArray[np.float64]:
     return np.where(xa > epsilon_rad, xa - epsilon_rad, np.where(xa < -epsilon_rad, xa + epsilon_rad, 0.0))
 
 
-def nonlinear_torque(
-    params: TwoMassParameters,
-    epsilon_rad: float,
-    twist: ArrayLike,
-    twist_rate: ArrayLike,
-) -> NDArray[np.float64]:
+def nonlinear_torque(params: TwoMassParameters, epsilon_rad: float, twist: ArrayLike,
+                     twist_rate: ArrayLike) -> NDArray[np.float64]:
     """Internal torque n(t) by which the backlash differs from the linear shaft [N·m]::
 
         τ_s = K·dz(z) + D·ẏ = (K·z + D·ż) − n,   n = K·(z − dz(z)) + D·(ż − ẏ)
@@ -557,13 +523,8 @@ def epsilon_grid(bounds_rad: tuple[float, float], resolution_rad: float) -> NDAr
     return lo + resolution_rad * np.arange(n)
 
 
-def epsilon_interval(
-    grid: NDArray[np.float64],
-    loss_at: Callable[[int], tuple[float, float]],
-    i_best: int,
-    f_best: float,
-    rel_tol: float,
-) -> tuple[float, float]:
+def epsilon_interval(grid: NDArray[np.float64], loss_at: Callable[[int], tuple[float, float]], i_best: int,
+                     f_best: float, rel_tol: float) -> tuple[float, float]:
     """Connected run of grid values around the argmin whose loss may be within tolerance.
 
     Walks outwards from ``i_best`` while ``loss_at(i)[0] ≤ f_best·(1 + rel_tol)``;
@@ -580,13 +541,9 @@ def epsilon_interval(
     return float(grid[lo]), float(grid[hi])
 
 
-def search_epsilon_grid(
-    loss: Callable[[float], float],
-    bounds_rad: tuple[float, float] = EPSILON_BOUNDS_RAD,
-    resolution_rad: float = EPSILON_RESOLUTION_RAD,
-    *,
-    rel_tol: float = 0.05,
-) -> EpsilonSearch:
+def search_epsilon_grid(loss: Callable[[float], float], bounds_rad: tuple[float, float] = EPSILON_BOUNDS_RAD,
+                        resolution_rad: float = EPSILON_RESOLUTION_RAD, *, rel_tol: float = 0.05
+                        ) -> EpsilonSearch:
     """Exhaustive search: evaluate ``loss(ε)`` on every grid value (ε in rad).
 
     ``interval_rad`` is the connected run of grid values around the argmin whose
@@ -602,28 +559,14 @@ def search_epsilon_grid(
         raise IdentificationError("the loss returned NaN/inf on the ε grid")
     ib = int(np.argmin(values))
     interval = epsilon_interval(grid, lambda i: (values[i], 1.0), ib, float(values[ib]), rel_tol)
-    return EpsilonSearch(
-        epsilon_rad=float(grid[ib]),
-        loss=float(values[ib]),
-        evaluations=int(grid.size),
-        history=history,
-        interval_rad=interval,
-        method="grid",
-    )
+    return EpsilonSearch(epsilon_rad=float(grid[ib]), loss=float(values[ib]), evaluations=int(grid.size),
+                         history=history, interval_rad=interval, method="grid")
 
 
-def search_epsilon_bayes(
-    loss: Callable[[float], float],
-    bounds_rad: tuple[float, float] = EPSILON_BOUNDS_RAD,
-    resolution_rad: float = EPSILON_RESOLUTION_RAD,
-    *,
-    n_initial: int = 5,
-    max_calls: int = 40,
-    seed: int = 0,
-    stop_when: Sequence[str] | None = None,
-    rel_tol: float = 0.05,
-    ei_tol: float = 1e-3,
-) -> EpsilonSearch:
+def search_epsilon_bayes(loss: Callable[[float], float], bounds_rad: tuple[float, float] = EPSILON_BOUNDS_RAD,
+                         resolution_rad: float = EPSILON_RESOLUTION_RAD, *, n_initial: int = 5,
+                         max_calls: int = 40, seed: int = 0, stop_when: Sequence[str] | None = None,
+                         rel_tol: float = 0.05, ei_tol: float = 1e-3) -> EpsilonSearch:
     """Bayesian optimisation (GP + expected improvement) of ``loss(ε)`` on the grid.
 
     Thin wrapper over :func:`commission.ident.bayesopt.minimize_on_grid`; see
@@ -633,21 +576,8 @@ def search_epsilon_bayes(
     from commission.ident.bayesopt import minimize_on_grid
 
     grid = epsilon_grid(bounds_rad, resolution_rad)
-    res = minimize_on_grid(
-        loss,
-        grid,
-        n_initial=n_initial,
-        max_evaluations=max_calls,
-        seed=seed,
-        stop_when=tuple(stop_when) if stop_when is not None else ("ei", "local_min"),
-        rel_tol=rel_tol,
-        ei_tol=ei_tol,
-    )
-    return EpsilonSearch(
-        epsilon_rad=res.x,
-        loss=res.fun,
-        evaluations=res.evaluations,
-        history=res.history,
-        interval_rad=res.interval,
-        method="bayes",
-    )
+    res = minimize_on_grid(loss, grid, n_initial=n_initial, max_evaluations=max_calls, seed=seed,
+                           stop_when=tuple(stop_when) if stop_when is not None else ("ei", "local_min"),
+                           rel_tol=rel_tol, ei_tol=ei_tol)
+    return EpsilonSearch(epsilon_rad=res.x, loss=res.fun, evaluations=res.evaluations, history=res.history,
+                         interval_rad=res.interval, method="bayes")

@@ -61,23 +61,11 @@ def _expected_improvement(mu: NDArray[np.float64], sd: NDArray[np.float64], f_mi
     return imp * norm.cdf(z) + sd * norm.pdf(z)
 
 
-def minimize_on_grid(
-    fun: Callable[[float], float],
-    grid: ArrayLike,
-    *,
-    n_initial: int = 5,
-    max_evaluations: int = 40,
-    seed: int = 0,
-    stop_when: Sequence[str] = ("ei", "local_min"),
-    ei_tol: float = 1e-3,
-    xi: float = 0.01,
-    repeat_limit: int = 3,
-    rel_tol: float = 0.05,
-    log_loss: bool = True,
-    min_iterations: int = 2,
-    acq_optimizer: str = "lbfgs",
-    n_points: int = 10000,
-) -> GridMinimization:
+def minimize_on_grid(fun: Callable[[float], float], grid: ArrayLike, *, n_initial: int = 5,
+                     max_evaluations: int = 40, seed: int = 0, stop_when: Sequence[str] = ("ei", "local_min"),
+                     ei_tol: float = 1e-3, xi: float = 0.01, repeat_limit: int = 3, rel_tol: float = 0.05,
+                     log_loss: bool = True, min_iterations: int = 2, acq_optimizer: str = "lbfgs",
+                     n_points: int = 10000) -> GridMinimization:
     """Minimise ``fun`` over the values of ``grid`` (sorted, 1-D) with GP + EI.
 
     :param fun: loss, called with a grid value (Python float).
@@ -172,19 +160,9 @@ def minimize_on_grid(
     budget = max(3 * max_evaluations, len(x0) + 5)
     with threadpool_limits(1), warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        gp_minimize(
-            objective,
-            space,
-            x0=x0,
-            n_initial_points=0,
-            n_calls=budget,
-            acq_func="EI",
-            xi=xi,
-            acq_optimizer=acq_optimizer,
-            n_points=n_points,
-            random_state=int(seed),
-            callback=[callback],
-        )
+        gp_minimize(objective, space, x0=x0, n_initial_points=0, n_calls=budget, acq_func="EI", xi=xi,
+                    acq_optimizer=acq_optimizer, n_points=n_points, random_state=int(seed),
+                    callback=[callback])
     if state["stopped_by"] == "exhausted" and len(cache) < n and state["calls"] >= budget:
         state["stopped_by"] = "budget"
 
@@ -213,16 +191,9 @@ def minimize_on_grid(
     from commission.ident.backlash import epsilon_interval
 
     interval = epsilon_interval(g, loss_at, ib, fb, rel_tol)
-    return GridMinimization(
-        x=float(g[ib]),
-        fun=float(fb),
-        index=int(ib),
-        evaluations=len(cache),
-        history=history,
-        interval=interval,
-        stopped_by=str(state["stopped_by"]),
-        optimizer_calls=int(state["calls"]),
-    )
+    return GridMinimization(x=float(g[ib]), fun=float(fb), index=int(ib), evaluations=len(cache),
+                            history=history, interval=interval, stopped_by=str(state["stopped_by"]),
+                            optimizer_calls=int(state["calls"]))
 
 
 def _optimistic_bounds(model_space, grid_pts: NDArray[np.float64], n: int, log_loss: bool) -> NDArray[np.float64] | None:

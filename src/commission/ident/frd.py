@@ -94,15 +94,9 @@ def _local_quality(U: NDArray[np.complex128], Y: NDArray[np.complex128],
     return np.clip(np.nan_to_num(q, nan=0.0), 0.0, 1.0)
 
 
-def estimate_frd(
-    torque_ref: ArrayLike,
-    motor_velocity: ArrayLike,
-    sample_rate_hz: float,
-    *,
-    band_hz: tuple[float, float] = (0.1, 400.0),
-    resolution_hz: float = 0.1,
-    quality: bool = True,
-) -> FRD:
+def estimate_frd(torque_ref: ArrayLike, motor_velocity: ArrayLike, sample_rate_hz: float, *,
+                 band_hz: tuple[float, float] = (0.1, 400.0), resolution_hz: float = 0.1,
+                 quality: bool = True) -> FRD:
     """FRD of V_m/T_ref from one record, at ``resolution_hz`` inside ``band_hz``.
 
     The first N = round(fs/resolution_hz) samples are transformed (the whole
@@ -125,9 +119,7 @@ def estimate_frd(
     if not (np.isfinite(fs) and fs > 0.0):
         raise IdentificationError(f"sample rate {sample_rate_hz!r} Hz is not a positive number")
     if u.size != y.size:
-        raise IdentificationError(
-            f"torque_ref has {u.size} samples but motor_velocity has {y.size}"
-        )
+        raise IdentificationError(f"torque_ref has {u.size} samples but motor_velocity has {y.size}")
     if not (np.isfinite(resolution_hz) and resolution_hz > 0.0):
         raise IdentificationError(f"resolution {resolution_hz!r} Hz is not a positive number")
     n = int(round(fs / resolution_hz))
@@ -145,9 +137,7 @@ def estimate_frd(
     k_lo = max(1, int(np.ceil((f_lo - tol) / df)))
     k_hi = int(np.floor((f_hi + tol) / df))
     if not (f_lo < f_hi) or k_hi < k_lo:
-        raise IdentificationError(
-            f"band {f_lo:g}–{f_hi:g} Hz holds no DFT bin at {df:g} Hz resolution"
-        )
+        raise IdentificationError(f"band {f_lo:g}–{f_hi:g} Hz holds no DFT bin at {df:g} Hz resolution")
     u, y = u[:n], y[:n]
 
     # output: flat or saturated (clipped at a limit for a stretch of ≥ 1 % of the record)
@@ -176,20 +166,11 @@ def estimate_frd(
         raise IdentificationError(f"torque_ref has no energy at {k0 * df:g} Hz inside the band")
     total_y = float(np.sum(np.abs(Y[1:]) ** 2))
     if float(np.sum(np.abs(Yb) ** 2)) <= 1e-12 * total_y:
-        raise IdentificationError(
-            f"motor_velocity has no energy in the band {f_lo:g}–{f_hi:g} Hz"
-        )
+        raise IdentificationError(f"motor_velocity has no energy in the band {f_lo:g}–{f_hi:g} Hz")
     if quality:
         with threadpool_limits(limits=1, user_api="blas"):  # many tiny problems
             q = _local_quality(U, Y, bins)
     else:
         q = np.full(bins.size, np.nan)
-    return FRD(
-        frequency_hz=bins * df,
-        response=Yb / Ub,
-        quality=q,
-        input_dft=Ub,
-        output_dft=Yb,
-        sample_rate_hz=fs,
-        resolution_hz=df,
-    )
+    return FRD(frequency_hz=bins * df, response=Yb / Ub, quality=q, input_dft=Ub, output_dft=Yb,
+               sample_rate_hz=fs, resolution_hz=df)

@@ -99,22 +99,19 @@ class PaperIdentification:
     frd_error: float
     backlash_detected: bool
     iterations: tuple[PaperIteration, ...]
+    #: "frd_tol" (close enough), "frd_error increased", "max_iterations", "no backlash detected"
+    #: (step 6 has nothing to remove) or "refit failed: …" (step 6 gave no physical plant).
     stop_reason: str
-    """"frd_tol" (close enough), "frd_error increased", "max_iterations",
-    "no backlash detected" (step 6 has nothing to remove), or
-    "refit failed: …" (step 6 gave no physical two-mass model)."""
+    #: Wall time [s] of "search" (step 4), "frd" (steps 2/5/6), "fit" (step 3 refits), "simulate"
+    #: (steps 5/6) and "total".
     timings_s: dict[str, float] = field(default_factory=dict)
-    """Wall time per stage [s]: "search" (step 4), "frd" (steps 2/5/6 FRDs),
-    "fit" (step 3 refits), "simulate" (steps 5/6 simulations), "total"."""
 
     @property
     def epsilon_deg(self) -> float:
         return math.degrees(self.epsilon_rad)
 
 
-def frd_error(
-    reference: _FRDLike, other: _FRDLike, band_hz: tuple[float, float] = (1.0, 400.0)
-) -> float:
+def frd_error(reference: _FRDLike, other: _FRDLike, band_hz: tuple[float, float] = (1.0, 400.0)) -> float:
     """sqrt(mean_k |G_other − G_ref|² / |G_ref|²) over the common bins inside ``band_hz``.
 
     :raises IdentificationError: the FRDs are on different bins, or no bin in the band.
@@ -155,24 +152,13 @@ def _load_reaction_filter(params: TwoMassParameters, n: NDArray[np.float64], fs:
 
 
 def paper_identify(
-    torque_ref: ArrayLike,
-    motor_velocity: ArrayLike,
-    sample_rate_hz: float,
-    linear_fit: LinearFit,
-    *,
-    search: Literal["bayes", "grid"] = "bayes",
-    bounds_rad: tuple[float, float] = EPSILON_BOUNDS_RAD,
+    torque_ref: ArrayLike, motor_velocity: ArrayLike, sample_rate_hz: float, linear_fit: LinearFit, *,
+    search: Literal["bayes", "grid"] = "bayes", bounds_rad: tuple[float, float] = EPSILON_BOUNDS_RAD,
     resolution_rad: float = EPSILON_RESOLUTION_RAD,
-    correction: Literal["output", "input", "input_filtered"] = "output",
-    max_iterations: int = 5,
-    frd_tol: float = 0.01,
-    frd_band_hz: tuple[float, float] = (1.0, 400.0),
-    rel_tol: float = 0.05,
-    seed: int = 0,
-    bayes_kwargs: dict[str, Any] | None = None,
-    fixed_epsilon_rad: float | None = None,
-    estimate_frd: Callable[..., Any] | None = None,
-    fit_transfer_function: Callable[..., Any] | None = None,
+    correction: Literal["output", "input", "input_filtered"] = "output", max_iterations: int = 5,
+    frd_tol: float = 0.01, frd_band_hz: tuple[float, float] = (1.0, 400.0), rel_tol: float = 0.05,
+    seed: int = 0, bayes_kwargs: dict[str, Any] | None = None, fixed_epsilon_rad: float | None = None,
+    estimate_frd: Callable[..., Any] | None = None, fit_transfer_function: Callable[..., Any] | None = None,
     from_velocity_tf: Callable[[Any, Any], TwoMassParameters] | None = None,
 ) -> PaperIdentification:
     """The paper's steps 4–6 given a linear fit (step 3), iterated (module docstring).
@@ -180,12 +166,10 @@ def paper_identify(
     :param torque_ref: torque reference [N·m], shape (N,).
     :param motor_velocity: measured motor velocity [rad/s], shape (N,), drive convention.
     :param sample_rate_hz: [Hz].
-    :param linear_fit: ``(num, den, delay_s)`` of V_m/T_ref, an object with
-        ``num``/``den``/``delay_s`` (e.g. a ``TransferFunctionFit``), or
-        ``TwoMassParameters`` (delay = one sample, the drive convention).
+    :param linear_fit: ``(num, den, delay_s)`` of V_m/T_ref, an object with ``num``/``den``/``delay_s``
+        (a ``TransferFunctionFit``), or ``TwoMassParameters`` (delay: one sample).
     :param search: "bayes" (paper) or "grid" (exhaustive).
-    :param correction: step-6 reading, "output", "input" or "input_filtered"
-        (module docstring).
+    :param correction: step-6 reading, "output", "input" or "input_filtered" (module docstring).
     :param max_iterations: passes of steps 4–5 at most (≥ 1); step 6 runs between passes.
     :param frd_tol: step-5 "close enough" threshold on ``frd_error``.
     :param fixed_epsilon_rad: skip step 4 and use this ε in every pass (to study
@@ -303,13 +287,6 @@ def paper_identify(
 
     best = min(iterations, key=lambda r: r.frd_error)
     timings["total"] = time.perf_counter() - t_total
-    return PaperIdentification(
-        params=best.params,
-        epsilon_rad=best.epsilon_rad,
-        delay_s=best.delay_s,
-        frd_error=best.frd_error,
-        backlash_detected=best.backlash_detected,
-        iterations=tuple(iterations),
-        stop_reason=stop_reason,
-        timings_s=timings,
-    )
+    return PaperIdentification(params=best.params, epsilon_rad=best.epsilon_rad, delay_s=best.delay_s,
+                               frd_error=best.frd_error, backlash_detected=best.backlash_detected,
+                               iterations=tuple(iterations), stop_reason=stop_reason, timings_s=timings)

@@ -38,8 +38,8 @@ always succeeds on the result.
 
 What to trust: B_m + B_l (the DC gain), J_m (the high-frequency gain) and the modal
 frequencies; the split of the friction between B_m, B_l and D is ill-conditioned. With
-backlash the fit is the best linear approximation of a nonlinear plant, the start of the
-joint fit and not the answer.
+backlash the fit is the best linear approximation of a nonlinear plant: a start for the
+time-domain estimator (:mod:`commission.ident.estimator`), not the answer.
 """
 
 from __future__ import annotations
@@ -67,28 +67,20 @@ _DAMPING_FLOOR = 1e-6
 class TransferFunctionFit:
     """A continuous rational model of V_m/T_ref fitted to FRD, plus the modelled delay."""
 
-    num: NDArray[np.float64]
-    """Numerator in descending powers of s (continuous V_m/T_ref without the delay)."""
-    den: NDArray[np.float64]
-    """Denominator in descending powers of s, den[0] == 1."""
-    delay_s: float
-    """Pure delay modelled [s] (one sample, 1/fs, by default)."""
+    num: NDArray[np.float64]  # descending powers of s (continuous V_m/T_ref, without the delay)
+    den: NDArray[np.float64]  # descending powers of s, den[0] == 1
+    delay_s: float  # pure delay modelled [s] (one sample, 1/fs, by default)
+    #: Relative RMS error of the modelled output DFT over the band, sqrt(mean_k |Y − Ŷ|² / |Y|²),
+    #: Ŷ = H·B/A·U + F·I/A (plant and transient).
     fit_error: float
-    """Relative RMS error of the modelled output DFT over the band,
-    sqrt(mean_k |Y(k) − Ŷ(k)|² / |Y(k)|²), Ŷ = H·B/A·U + F·I/A (plant and transient)."""
-    iterations: int
-    """Sanathanan–Koerner iterations done (the polish not counted)."""
-    converged: bool
-    """True when the SK iterations met ``tol`` within ``max_iterations``."""
-    sample_rate_hz: float = 0.0
-    """Sample rate of the data [Hz]; > 0 adds the hold's sinc² in :meth:`response`."""
-    constrained: bool = False
-    """True when the free optimum was not physical and the physical refit was used."""
+    iterations: int  # Sanathanan–Koerner iterations done (the polish not counted)
+    converged: bool  # the SK iterations met tol within max_iterations
+    sample_rate_hz: float = 0.0  # of the data [Hz]; > 0 adds the hold's sinc² in response()
+    constrained: bool = False  # the free optimum was not physical and the physical refit was used
 
     def response(self, f_hz: ArrayLike) -> NDArray[np.complex128]:
-        """Modelled sampled response at ``f_hz`` [rad/s per N·m], *including* the delay
-        (and the sinc²(f/fs) of zero-order hold + backward difference when the
-        fit modelled the sampling)."""
+        """Modelled sampled response at ``f_hz`` [rad/s per N·m], *including* the delay (and the
+        sinc²(f/fs) of zero-order hold + backward difference when the fit modelled the sampling)."""
         f = np.asarray(f_hz, dtype=float)
         s = 2j * np.pi * f
         h = np.exp(-s * self.delay_s)
@@ -102,41 +94,27 @@ class TransferFunctionFit:
         return np.polyval(self.num, s) / np.polyval(self.den, s)
 
 
-def fit_transfer_function(
-    frd: FRD,
-    *,
-    num_order: int = 2,
-    den_order: int = 3,
-    delay_s: float | None = None,
-    transient: bool = True,
-    max_iterations: int = 100,
-    tol: float = 1e-9,
-    weighting: Weighting = "balanced",
-    polish: bool = True,
-    physical: bool = True,
-    fit_delay: bool = False,
-) -> TransferFunctionFit:
+def fit_transfer_function(frd: FRD, *, num_order: int = 2, den_order: int = 3, delay_s: float | None = None,
+                          transient: bool = True, max_iterations: int = 100, tol: float = 1e-9,
+                          weighting: Weighting = "balanced", polish: bool = True, physical: bool = True,
+                          fit_delay: bool = False) -> TransferFunctionFit:
     """Fit B(s)/A(s) (order num_order/den_order) to ``frd``'s raw DFTs (see the module docstring).
 
-    :param delay_s: pure delay to model [s]. ``None`` = one sample (1/fs),
-        the drive convention (ZOH torque, backward-difference velocity), and
-        the hold's sinc² is modelled too. An explicit value models that delay
-        and the sinc²; 0.0 models neither (a plain continuous fit).
-    :param transient: model the transient/leakage term I/A. ``False`` with
-        ``delay_s=0.0`` is the naive fit of the plain ratio Y/U.
-    :param max_iterations: cap on Sanathanan–Koerner iterations.
-    :param tol: SK stops when the relative change of the coefficient vector
-        falls below ``tol``.
+    :param delay_s: pure delay to model [s]. ``None`` = one sample (1/fs), the drive convention,
+        with the hold's sinc²; an explicit value models that delay and the sinc²; 0.0 neither.
+    :param transient: model the transient term I/A (``False`` with ``delay_s=0.0``: the naive
+        fit of the plain ratio Y/U).
+    :param max_iterations, tol: SK stops after ``max_iterations`` or when the relative change of
+        the coefficient vector falls below ``tol``.
     :param weighting: "balanced" (default), "relative" or "uniform".
     :param polish: Gauss–Newton on the true output error after SK.
-    :param physical: for 2/3 models, refit in physical parameters when the
-        free optimum is not a physical two-mass plant.
-    :param fit_delay: also fit an extra delay δ ≥ 0 beyond ``delay_s`` (jointly with the
-        coefficients, in the polish) — a drive's current loop acts on the FRD like a delay
-        of about its time constant — and keep it when it removes enough of the output error
-        (``_DELAY_GAIN``); ``delay_s`` of the result then includes it.
-    :raises IdentificationError: bad orders or delay, too few bins, an output
-        DFT that is zero, or a singular/non-finite least-squares problem.
+    :param physical: for 2/3 models, refit in physical parameters when the free optimum is not
+        a physical two-mass plant.
+    :param fit_delay: also fit an extra delay δ ≥ 0 beyond ``delay_s`` in the polish (a current
+        loop acts on the FRD like a delay of about its time constant), kept when it removes enough
+        of the output error (``_DELAY_GAIN``); ``delay_s`` of the result then includes it.
+    :raises IdentificationError: bad orders or delay, too few bins, an output DFT that is zero,
+        or a singular/non-finite least-squares problem.
     """
     # small dense problems: one BLAS thread is several times faster than many on a loaded machine
     with threadpool_limits(limits=1, user_api="blas"):
@@ -168,9 +146,7 @@ def _fit(frd: FRD, num_order: int, den_order: int, delay_s: float | None, transi
     n_i = den_order if transient else -1
     n_unknown = na + nb + (n_i + 1)
     if M < n_unknown:
-        raise IdentificationError(
-            f"{M} frequency bins are too few for {n_unknown} unknown coefficients"
-        )
+        raise IdentificationError(f"{M} frequency bins are too few for {n_unknown} unknown coefficients")
     absY = np.abs(Y)
     if np.any(absY == 0.0) or not (np.all(np.isfinite(Y)) and np.all(np.isfinite(U))):
         raise IdentificationError("the output DFT is zero or not finite at some bin: cannot fit")
@@ -210,9 +186,7 @@ def _fit(frd: FRD, num_order: int, den_order: int, delay_s: float | None, transi
         rr = np.concatenate([(rhs * rw).real, (rhs * rw).imag])
         cn = np.linalg.norm(Mr, axis=0)
         if np.any(cn == 0.0) or not np.all(np.isfinite(Mr)):
-            raise IdentificationError(
-                "the least-squares problem is singular (a column is zero or not finite)"
-            )
+            raise IdentificationError("the least-squares problem is singular (a column is zero or not finite)")
         new = np.linalg.lstsq(Mr / cn, rr, rcond=None)[0] / cn
         if not np.all(np.isfinite(new)):
             raise IdentificationError("Sanathanan–Koerner iteration produced non-finite coefficients")
