@@ -16,7 +16,7 @@ smooth function of the data.
 Optional terms (:class:`ModelTerms`): motor Coulomb friction F_cm·tanh(ẋ_m/v_s) in the motor
 equation; load Coulomb friction F_cl·tanh(ẋ_l/v_s) in the load simulation; a first-order current
 loop T_c·τ̇ = τ_ref − τ. A term is kept when its Wald statistic (value/σ)² exceeds ln n_eff (the
-BIC's price of a parameter); the fit is then repeated without the others.
+BIC's price of a parameter, :func:`significant_terms`).
 
 Uncertainty. The Newey–West (HAC) covariance at the optimum: the residual of a model that is not
 exact is correlated with itself and with the Jacobian, which s²·(JᵀJ)⁻¹ ignores. n_eff, the
@@ -28,7 +28,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,13 +38,13 @@ from scipy.optimize import least_squares
 from .residual import Observer, ResidualProblem, motor_part, simulate_load
 from .twomass import TwoMassParameters
 
-__all__ = ["ModelTerms", "PemFit", "fit", "select_terms"]
+__all__ = ["ModelTerms", "PemFit", "fit", "significant_terms"]
 
 PARAMETER_NAMES = ("J_m", "J_l", "B_m", "B_l", "K", "D")
 #: Decimated residual samples left out at each end: the zero-phase low-pass's edge transients.
 EDGE_SAMPLES = 4
 #: Iterations of the first least squares, ε held at the start cell's.
-_HELD_EPSILON_NFEV = 10
+_HELD_EPSILON_NFEV = 6
 #: Relative finite-difference step in the log-parameters (as scipy's diff_step).
 _DIFF_STEP = 1e-6
 #: Largest lag of the autocorrelation behind n_eff.
@@ -300,12 +301,11 @@ def fit(problem: ResidualProblem, start: TwoMassParameters, epsilon_rad: float, 
 _TERM_COORDINATE = {"coulomb_motor": "F_cm", "coulomb_load": "F_cl", "current_loop": "T_c_us"}
 
 
-def select_terms(problem: ResidualProblem, result: PemFit, observer: Observer, *, epsilon_max_rad: float,
-                 load_weight_nm_per_rad: float = 0.0, threads: int = 2, keep_all: bool = False,
-                 alternates: Sequence[tuple[ResidualProblem, Observer]] = ()) -> PemFit:
-    """Keep the terms whose Wald z² = (value/σ)² exceeds ln n_eff; refit without the others."""
+def significant_terms(result: PemFit, *, keep_all: bool = False) -> tuple[ModelTerms, dict[str, dict[str, Any]]]:
+    """The terms of a fit whose Wald statistic z² = (value/σ)² exceeds ln n_eff (the BIC's price of a
+    parameter), and per candidate its z², the threshold and whether it is kept."""
     threshold = math.log(max(result.n_effective, 2.0))
-    selection: dict[str, dict[str, float | bool]] = {}
+    selection: dict[str, dict[str, Any]] = {}
     kept = {}
     for term in result.terms.names():
         name = _TERM_COORDINATE[term]
@@ -315,12 +315,4 @@ def select_terms(problem: ResidualProblem, result: PemFit, observer: Observer, *
         z2 = (value / se) ** 2 if se > 0 else (math.inf if value > 0 else 0.0)
         kept[term] = bool(keep_all or z2 > threshold)
         selection[term] = {"z2": float(z2), "threshold": threshold, "kept": kept[term]}
-    if all(kept.values()):
-        return replace(result, selection=selection)
-    terms = ModelTerms(**{t: kept.get(t, False) for t in ("coulomb_motor", "coulomb_load", "current_loop")})
-    refit = fit(problem, result.parameters, result.epsilon_rad, terms, observer,
-                coulomb_motor_nm=result.coulomb_motor_nm, coulomb_load_nm=result.coulomb_load_nm,
-                lag_s=result.lag_s, epsilon_max_rad=epsilon_max_rad,
-                load_weight_nm_per_rad=load_weight_nm_per_rad, threads=threads, max_nfev=20, hold_epsilon=False,
-                alternates=alternates)
-    return replace(refit, evaluations=refit.evaluations + result.evaluations, selection=selection)
+    return ModelTerms(**{t: kept.get(t, False) for t in ("coulomb_motor", "coulomb_load", "current_loop")}), selection

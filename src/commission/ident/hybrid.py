@@ -25,15 +25,16 @@ import functools
 import math
 import time
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
 from ..exceptions import IdentificationError
 from ..recording import Recording
-from .estimator import ModelTerms, PemFit, fit, select_terms
+from .estimator import ModelTerms, PemFit, fit, significant_terms
 from .options import IdentificationOptions, Method, options_from_mapping
 from .result import FitQuality, Identification, StageResult
 from .twomass import TwoMassParameters, modes
@@ -49,8 +50,6 @@ _FRICTION_SCREEN = 0.02
 _SCAN_STEP = 5
 #: Quantization floor the residual's low-pass is lowered to, in good-fit levels.
 _QUANTIZATION_TARGET = 2.5
-#: Scans at the fitted linear parameters at most (each followed by a fit when its best ε differs).
-_RESCANS = 2
 
 
 class _Stages:
@@ -140,205 +139,292 @@ def identify(recording: Recording, options: IdentificationOptions | None = None,
     return result
 
 
+@dataclass
+class _Run:
+    """What the hybrid stages share: the record, the options, and what the earlier stages found."""
+
+    rec: Recording
+    opt: IdentificationOptions
+    band: tuple[float, float]
+    resolution: float
+    notes: list[str]
+    use_load: bool
+    lost: NDArray[np.bool_]
+    problem: Any = None
+    """The residual problem (commission.ident.residual.ResidualProblem) at the chosen low-pass."""
+    start: Any = None
+    """The frequency-domain start (commission.ident.start.Start), None when only the encoders gave one."""
+    encoders: Any = None
+    """The start from both encoders (commission.ident.start.EncoderStart), None without a load encoder."""
+    base: TwoMassParameters | None = None
+    """The start's parameters (the frequency-domain one's, else the encoders')."""
+    cutoff: dict[str, Any] = field(default_factory=dict)
+    torque_rms_nm: float = 0.0
+    lag_s: float = 0.0
+    """The start's current-loop time constant (delay fitted beyond the sample's) [s]."""
+
+    @property
+    def fs(self) -> float:
+        return self.rec.sample_rate_hz
+
+    @property
+    def load_weight(self) -> float:
+        return float(self.base.K) if self.use_load and self.base is not None else 0.0
+
+    def prepared(self, cutoff_hz: float, interpolation: str | None = None) -> Any:
+        from .residual import prepare_residual
+
+        rec, opt = self.rec, self.opt
+        return prepare_residual(rec.torque_ref, self.fs, motor_position=rec.motor_position,
+                                motor_velocity=rec.motor_velocity, cutoff_hz=cutoff_hz,
+                                load_position=rec.load_position if self.use_load else None,
+                                velocity_scale_rad_s=opt.coulomb_velocity_scale_rad_s,
+                                interpolation=interpolation or opt.motor_interpolation,
+                                lost=self.lost if self.lost.any() else None)
+
+
 def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, band: tuple[float, float],
                      resolution: float) -> Identification:
-    from .assess import assess
-    from .frd import estimate_frd
-    from .residual import Observer, prepare_residual
-    from .scan import EPSILON_EXTEND_MAX_DEG, Scan, ScanCell, scan
-    from .start import Start, frequency_start, load_encoder_start, measured_band_hz, residual_cutoff
-
-    notes: list[str] = []
-    fs = rec.sample_rate_hz
-    use_load = bool(opt.use_load_encoder and rec.load_position is not None)
-
-    lost = rec.lost_mask
-    if lost.any():
-        notes.append(f"{int(lost.sum())} samples the link lost are interpolated in the record and left out of "
-                     "the time-domain fit")
-
-    def prepared(cutoff_hz: float, interpolation: str = opt.motor_interpolation) -> Any:
-        return prepare_residual(rec.torque_ref, fs, motor_position=rec.motor_position,
-                                motor_velocity=rec.motor_velocity, cutoff_hz=cutoff_hz,
-                                load_position=rec.load_position if use_load else None,
-                                velocity_scale_rad_s=opt.coulomb_velocity_scale_rad_s,
-                                interpolation=interpolation, lost=lost if lost.any() else None)
-
+    run = _Run(rec, opt, band, resolution, [], bool(opt.use_load_encoder and rec.load_position is not None),
+               rec.lost_mask)
+    if run.lost.any():
+        run.notes.append(f"{int(run.lost.sum())} samples the link lost are interpolated in the record and left "
+                         "out of the time-domain fit")
     st.start("start", 0.0)
-    candidates = ModelTerms(**{name: True for name in opt.model_terms})
-    problem = prepared(min(opt.residual_cutoff_hz, 0.4 * fs))
-    try:
-        start: Start | None = frequency_start(rec, problem, band_hz=band, resolution_hz=resolution,
-                                              quality_threshold=opt.quality_threshold,
-                                              fit_delay=candidates.current_loop, notes=notes)
-    except IdentificationError as err:
-        if not use_load:
-            raise
-        start = None
-        notes.append(f"frequency-domain start failed ({err}); the load encoder's start is used")
-    enc = load_encoder_start(problem, math.radians(EPSILON_EXTEND_MAX_DEG)) if use_load else None
-    if start is None and enc is None:
-        raise IdentificationError("neither the frequency response nor the encoders give a two-mass plant")
-    base = start.parameters if start is not None else enc.parameters  # type: ignore[union-attr]
-    ref = float(np.sqrt(np.mean(problem.torque_f ** 2)))
-    cut = residual_cutoff(rec, base, band[1], opt.residual_cutoff_hz, ref, _QUANTIZATION_TARGET * opt.good_fit_ratio)
-    if cut["cutoff_hz"] != problem.cutoff_hz:
-        problem = prepared(cut["cutoff_hz"])
-        ref = float(np.sqrt(np.mean(problem.torque_f ** 2)))
-        if use_load:
-            enc = load_encoder_start(problem, math.radians(EPSILON_EXTEND_MAX_DEG)) or enc
-    if cut.get("unlowered_cutoff_hz"):
-        notes.append(f"the motor encoder's step ({cut['position_step_rad']:.3g} rad) would leave much of the "
-                     f"torque as noise in the residual; low-passed at {cut['cutoff_hz']:.0f} Hz instead of "
-                     f"{cut['unlowered_cutoff_hz']:.0f} Hz — a finer encoder would let the fit see more")
-    if rec.motor_position is None:
-        notes.append("motor position rebuilt from the velocity (x[k] = x[k−1] + Ts·v[k])")
-    if use_load:
-        notes.append("load encoder used: the start from both encoders' equations of motion, the initial twist "
-                     "from the encoders, and a load-position block K̂·(x_l,sim − x_l,meas) in the residual")
-    w_load = float(base.K) if use_load else 0.0
-    lag0 = max(start.delay_s - 1.0 / fs, 0.0) if candidates.current_loop and start is not None else 0.0
-    st.done("start", parameters=base.as_dict(), how=start.how if start else "load encoder",
-            delay_s=start.delay_s if start else 1.0 / fs, band_hz=list(band),
-            band_low_hz=start.band_low_hz if start else band[0], resolution_hz=resolution, residual=cut,
-            load_encoder=use_load)
-
+    _start_stage(run)
+    st.done("start", parameters=run.base.as_dict(), how=run.start.how if run.start else "load encoder",  # type: ignore[union-attr]
+            delay_s=run.start.delay_s if run.start else 1.0 / run.fs, band_hz=list(band),
+            band_low_hz=run.start.band_low_hz if run.start else band[0], resolution_hz=resolution,
+            residual=run.cutoff, load_encoder=run.use_load)
     st.start("scan", 0.2)
-    friction_rescan = None
+    cell, scan_detail = _scan_stage(run)
+    st.done("scan", **scan_detail)
+    st.start("fit", 0.35)
+    pem, observer, fit_detail = _fit_stage(run, cell, scan_detail)
+    st.done("fit", **fit_detail)
+    st.start("check", 0.9)
+    quality, iterations = _check_stage(run, cell, pem, observer)
+    st.done("check", fit=quality.to_dict())
+    return _identification(run, pem, quality, iterations, st.items, scan_detail["evaluations"])
+
+
+def _start_stage(run: _Run) -> None:
+    """The frequency-domain start (or the encoders'), the residual's low-pass, and the notes on them."""
+    from .scan import EPSILON_EXTEND_MAX_DEG
+    from .start import frequency_start, load_encoder_start, residual_cutoff
+
+    opt, fs = run.opt, run.fs
+    run.problem = run.prepared(min(opt.residual_cutoff_hz, 0.4 * fs))
+    try:
+        run.start = frequency_start(run.rec, run.problem, band_hz=run.band, resolution_hz=run.resolution,
+                                    quality_threshold=opt.quality_threshold,
+                                    fit_delay="current_loop" in opt.model_terms, notes=run.notes)
+    except IdentificationError as err:
+        if not run.use_load:
+            raise
+        run.notes.append(f"frequency-domain start failed ({err}); the load encoder's start is used")
+    top = math.radians(EPSILON_EXTEND_MAX_DEG)
+    run.encoders = load_encoder_start(run.problem, top) if run.use_load else None
+    if run.start is None and run.encoders is None:
+        raise IdentificationError("neither the frequency response nor the encoders give a two-mass plant")
+    run.base = run.start.parameters if run.start is not None else run.encoders.parameters
+    ref = float(np.sqrt(np.mean(run.problem.torque_f ** 2)))
+    run.cutoff = residual_cutoff(run.rec, run.base, run.band[1], opt.residual_cutoff_hz, ref,
+                                 _QUANTIZATION_TARGET * opt.good_fit_ratio)
+    if run.cutoff["cutoff_hz"] != run.problem.cutoff_hz:
+        run.problem = run.prepared(run.cutoff["cutoff_hz"])
+        ref = float(np.sqrt(np.mean(run.problem.torque_f ** 2)))
+        if run.use_load:
+            run.encoders = load_encoder_start(run.problem, top) or run.encoders
+    run.torque_rms_nm = ref
+    if run.start is not None and "current_loop" in opt.model_terms:
+        run.lag_s = max(run.start.delay_s - 1.0 / fs, 0.0)
+    if run.cutoff.get("unlowered_cutoff_hz"):
+        run.notes.append(f"the motor encoder's step ({run.cutoff['position_step_rad']:.3g} rad) would leave much of "
+                         f"the torque as noise in the residual; low-passed at {run.cutoff['cutoff_hz']:.0f} Hz "
+                         f"instead of {run.cutoff['unlowered_cutoff_hz']:.0f} Hz — a finer encoder would let the "
+                         "fit see more")
+    if run.rec.motor_position is None:
+        run.notes.append("motor position rebuilt from the velocity (x[k] = x[k−1] + Ts·v[k])")
+    if run.use_load:
+        run.notes.append("load encoder used: the start from both encoders' equations of motion, the initial twist "
+                         "from the encoders, and a load-position block K̂·(x_l,sim − x_l,meas) in the residual")
+
+
+def _scan_stage(run: _Run) -> tuple[Any, dict[str, Any]]:
+    """The start cell: the encoders' start, else the best cell of the (ε, damping split) scan (scanned again
+    with friction on the load side when its friction column shows friction)."""
+    from .scan import Scan, ScanCell, scan
+
+    opt, ref = run.opt, run.torque_rms_nm
+    coulomb_load = "coulomb_load" in opt.model_terms
+    friction: dict[str, float] | None = None
+    enc = run.encoders
     if enc is not None:
-        # both encoders: the equation-error start is the cell (no load simulation needed to find it)
         cell = ScanCell(enc.epsilon_rad, math.nan, enc.cost_nm, enc.parameters,
                         enc.coulomb_motor_nm + enc.coulomb_load_nm)
-        if candidates.coulomb_load and enc.coulomb_load_nm > _FRICTION_SCREEN * ref:
-            friction_rescan = {"coulomb_nm": enc.coulomb_motor_nm + enc.coulomb_load_nm,
-                               "load_nm": enc.coulomb_load_nm}
+        if coulomb_load and enc.coulomb_load_nm > _FRICTION_SCREEN * ref:
+            friction = {"coulomb_nm": cell.coulomb_nm, "load_nm": enc.coulomb_load_nm}
         sc = Scan((cell,), None)
     else:
-        step = _SCAN_STEP * opt.epsilon_resolution_deg
-        sc = scan(problem, base, opt.epsilon_bounds_deg, step, opt.damping_splits,
-                  coulomb=candidates.coulomb_motor or candidates.coulomb_load, lag_s=lag0,
-                  load_weight_nm_per_rad=w_load, threads=opt.threads)
+        sc = _scan_at(run, run.base, opt.epsilon_bounds_deg)  # type: ignore[arg-type]
         cell = _best_cell(sc)
-        if candidates.coulomb_load and cell is not None and cell.coulomb_nm > _FRICTION_SCREEN * ref:
-            # friction: the motor column stood in for both sides; scan again with half of it simulated
-            # on the load side, where it shapes the load's motion through the gap
-            friction_rescan = {"coulomb_nm": cell.coulomb_nm, "first_epsilon_deg": math.degrees(cell.epsilon_rad)}
-            sc = scan(problem, base, opt.epsilon_bounds_deg, step, opt.damping_splits, coulomb=True,
-                      lag_s=lag0, load_weight_nm_per_rad=w_load, coulomb_load_nm=0.5 * cell.coulomb_nm,
-                      threads=opt.threads)
+        if coulomb_load and cell is not None and cell.coulomb_nm > _FRICTION_SCREEN * ref:
+            # the motor column stood in for both sides: again with half of it simulated on the load side,
+            # where it shapes the load's motion through the gap
+            friction = {"coulomb_nm": cell.coulomb_nm, "load_nm": 0.5 * cell.coulomb_nm}
+            sc = scan(run.problem, run.base, opt.epsilon_bounds_deg, _SCAN_STEP * opt.epsilon_resolution_deg,
+                      opt.damping_splits, coulomb=True, lag_s=run.lag_s, load_weight_nm_per_rad=run.load_weight,
+                      coulomb_load_nm=friction["load_nm"], threads=opt.threads)
             cell = _best_cell(sc) or cell
     if cell is None:
         # no projection gives positive inertias (the record holds more than a two-mass plant's response):
-        # the fit starts from the frequency-domain start itself, and its quality will say so
-        cell = ScanCell(0.0, math.nan, math.inf, base)
-        notes.append("no cell of the start scan gave positive inertias: the fit starts from the frequency-domain "
-                     "start")
-    top_deg = sc.extended_to_deg or scan_top_deg(opt)
+        # the fit starts from the start itself, and its quality will say so
+        cell = ScanCell(0.0, math.nan, math.inf, run.base)
+        run.notes.append("no cell of the start scan gave positive inertias: the fit starts from the "
+                         "frequency-domain start")
     if sc.extended_to_deg:
-        notes.append(f"ε scan extended to {sc.extended_to_deg:g}°: its best cell lay at the top of the "
-                     f"configured range (up to {opt.epsilon_bounds_deg[1]:g}°)")
-    st.done("scan", evaluations=sc.evaluations, extended_to_deg=sc.extended_to_deg, lag_s=lag0,
-            friction_rescan=friction_rescan, load_encoder_start=enc is not None,
-            history=[{"epsilon_deg": math.degrees(c.epsilon_rad), "phi": c.phi, "cost_nm": c.cost_nm}
-                     for c in (sc.history or sc.cells)])
+        run.notes.append(f"ε scan extended to {sc.extended_to_deg:g}°: its best cell lay at the top of the "
+                         f"configured range (up to {opt.epsilon_bounds_deg[1]:g}°)")
+    return cell, {"evaluations": sc.evaluations, "extended_to_deg": sc.extended_to_deg, "lag_s": run.lag_s,
+                  "friction": friction, "load_encoder_start": enc is not None,
+                  "history": [{"epsilon_deg": math.degrees(c.epsilon_rad), "phi": c.phi, "cost_nm": c.cost_nm}
+                              for c in (sc.history or sc.cells)]}
 
-    st.start("fit", 0.35)
-    terms = ModelTerms(coulomb_motor=candidates.coulomb_motor, coulomb_load=friction_rescan is not None,
-                       current_loop=candidates.current_loop)
-    p0 = cell.parameters
-    assert p0 is not None
+
+def _scan_at(run: _Run, around: TwoMassParameters, bounds_deg: tuple[float, float], own_split: bool = False) -> Any:
+    from .scan import scan
+
+    opt = run.opt
+    return scan(run.problem, around, bounds_deg, _SCAN_STEP * opt.epsilon_resolution_deg, opt.damping_splits,
+                coulomb=bool({"coulomb_motor", "coulomb_load"} & set(opt.model_terms)), lag_s=run.lag_s,
+                load_weight_nm_per_rad=run.load_weight, threads=opt.threads, phi_around=own_split)
+
+
+def _fit_stage(run: _Run, cell: Any, scan_detail: dict[str, Any]) -> tuple[PemFit, Any, dict[str, Any]]:
+    """The prediction-error fit from the start cell: with a slow observer and every candidate term, then
+    with the configured observer and the terms the first fit found significant; then a scan at the fit's
+    linear parameters, and a fit from its best cell when that lies at another ε (the lower cost taken)."""
+    from .residual import Observer
+
+    opt, fs, base = run.opt, run.fs, run.base
+    assert base is not None and cell.parameters is not None
+    p = cell.parameters
     floor = 1e-3 * (base.B_m + base.B_l)
-    p0 = TwoMassParameters(J_m=p0.J_m, J_l=p0.J_l, B_m=max(p0.B_m, floor), B_l=max(p0.B_l, floor), K=p0.K,
-                           D=max(p0.D, 1e-6 * p0.K))
-    fc = problem.cutoff_hz
-    observer = Observer.design(fs, opt.observer_bandwidth_factor * fc, 2.0 * fc, p0.K, p0.D, load_encoder=use_load)
-    friction = max(friction_rescan["coulomb_nm"] if friction_rescan else cell.coulomb_nm, 0.0)
-    eps_max = math.radians(2.0 * max(top_deg, math.degrees(cell.epsilon_rad)))
-    f_load = (friction_rescan or {}).get("load_nm", 0.5 * friction)
-    # the same residual discretized otherwise: its motor position a global spline, its observer half
-    # as fast (the estimate's sensitivity to them is part of its uncertainty)
-    other = prepared(fc, "spline" if opt.motor_interpolation == "local" else "local")
-    alternates = ((other, observer),
-                  (problem, Observer.design(fs, 0.5 * opt.observer_bandwidth_factor * fc, 2.0 * fc, p0.K, p0.D,
-                                            load_encoder=use_load)))
-    # continuation in the observer's gain: a slow observer first (the cost's basin in the linear
-    # parameters is wide), then the configured one from there (it follows impact-rich loads)
-    slow = alternates[1][1]
-    pem = fit(problem, p0, cell.epsilon_rad, terms, slow,
-              coulomb_motor_nm=friction - f_load if terms.coulomb_load else friction,
-              coulomb_load_nm=f_load, lag_s=lag0, epsilon_max_rad=eps_max,
-              load_weight_nm_per_rad=w_load, threads=opt.threads, max_nfev=opt.max_fit_evaluations)
-    fast = fit(problem, pem.parameters, pem.epsilon_rad, terms, observer, alternates=alternates,
-               coulomb_motor_nm=pem.coulomb_motor_nm, coulomb_load_nm=pem.coulomb_load_nm, lag_s=pem.lag_s,
-               epsilon_max_rad=eps_max, load_weight_nm_per_rad=w_load, threads=opt.threads,
-               max_nfev=opt.max_fit_evaluations, hold_epsilon=False)
-    pem = replace(fast, evaluations=fast.evaluations + pem.evaluations)
-    # the scan again at the fit's linear parameters (which moved toward the plant's even where its ε
-    # did not): block-coordinate descent, a global step in ε between local fits, until the scan's best
-    # cell is the fit's own
-    rounds = 0
-    while enc is None and rounds < _RESCANS and math.isfinite(pem.cost_nm):
-        bounds = (opt.epsilon_bounds_deg[0], max(opt.epsilon_bounds_deg[1], 2.0 * math.degrees(pem.epsilon_rad)))
-        again = scan(problem, pem.parameters, bounds, step, opt.damping_splits,
-                     coulomb=candidates.coulomb_motor or candidates.coulomb_load, lag_s=pem.lag_s,
-                     load_weight_nm_per_rad=w_load, threads=opt.threads, phi_around=True)
-        best = _best_cell(again)
-        rounds += 1
-        if best is None or abs(best.epsilon_rad - pem.epsilon_rad) <= 2.5 * math.radians(step):
-            break
-        other = fit(problem, best.parameters, best.epsilon_rad, terms, observer, alternates=alternates,
-                    coulomb_motor_nm=pem.coulomb_motor_nm, coulomb_load_nm=pem.coulomb_load_nm, lag_s=pem.lag_s,
-                    epsilon_max_rad=eps_max, load_weight_nm_per_rad=w_load, threads=opt.threads,
-                    max_nfev=opt.max_fit_evaluations)
-        calls = pem.evaluations + other.evaluations + again.evaluations
-        pem = replace(other if other.cost_nm < pem.cost_nm else pem, evaluations=calls)
-        if other.cost_nm >= pem.cost_nm and other is not pem:
-            break
-    if terms.any:
-        pem = select_terms(problem, pem, observer, epsilon_max_rad=eps_max, load_weight_nm_per_rad=w_load,
-                           threads=opt.threads, keep_all=opt.term_selection == "keep_all", alternates=alternates)
-    st.done("fit", evaluations=pem.evaluations, converged=pem.converged, message=pem.message,
-            start_epsilon_deg=math.degrees(cell.epsilon_rad), start_phi=cell.phi, rescans=rounds,
-            observer_gain_rad_per_nm=observer.gain_rad_per_nm, terms=list(pem.terms.names()))
+    p0 = TwoMassParameters(J_m=p.J_m, J_l=p.J_l, B_m=max(p.B_m, floor), B_l=max(p.B_l, floor), K=p.K,
+                           D=max(p.D, 1e-6 * p.K))
+    fc = run.problem.cutoff_hz
 
-    st.start("check", 0.9)
-    quality = assess(pem, torque_rms_nm=ref, motor_samples=problem.acceleration_f.size,
-                     decimated_rate_hz=fs / problem.decimation, good_fit_ratio=opt.good_fit_ratio,
-                     noise_floor_ratio=float(cut["quantization_floor_ratio"]), cutoff_hz=fc,
+    def observer(factor: float) -> Observer:
+        return Observer.design(fs, factor * opt.observer_bandwidth_factor * fc, 2.0 * fc, p0.K, p0.D,
+                               load_encoder=run.use_load)
+
+    fast, slow = observer(1.0), observer(0.5)
+    # the estimate's sensitivity to how the residual is discretized is part of its uncertainty: the motor
+    # position a global spline instead, the observer half as fast
+    alternates = ((run.prepared(fc, "spline" if opt.motor_interpolation == "local" else "local"), fast),
+                  (run.problem, slow))
+    friction = scan_detail["friction"]
+    f_total = max(friction["coulomb_nm"] if friction else cell.coulomb_nm, 0.0)
+    f_load = friction["load_nm"] if friction else 0.0
+    # motor Coulomb friction is a candidate when the start shows it (the scan cell's column significant: its
+    # Wald statistic over ln n; the encoders' start has no such statistic)
+    n = run.problem.acceleration_f.size
+    candidates = ModelTerms(coulomb_motor="coulomb_motor" in opt.model_terms
+                            and (friction is not None or run.encoders is not None or cell.coulomb_z2 > math.log(n)),
+                            coulomb_load=friction is not None, current_loop="current_loop" in opt.model_terms)
+    top = scan_detail["extended_to_deg"] or opt.epsilon_bounds_deg[1]
+    eps_max = math.radians(2.0 * max(top, math.degrees(cell.epsilon_rad)))
+    common = dict(epsilon_max_rad=eps_max, load_weight_nm_per_rad=run.load_weight, threads=opt.threads,
+                  max_nfev=opt.max_fit_evaluations)
+    # continuation in the observer's gain: the slow one's basin in the linear parameters is wide, the
+    # configured one follows impact-rich loads
+    first = fit(run.problem, p0, cell.epsilon_rad, candidates, slow, coulomb_motor_nm=f_total - f_load,
+                coulomb_load_nm=f_load, lag_s=run.lag_s, **common)
+    terms, selection = significant_terms(first, keep_all=opt.term_selection == "keep_all")
+
+    def refit(p: TwoMassParameters, eps: float, hold: bool) -> PemFit:
+        return fit(run.problem, p, eps, terms, fast, alternates=alternates, coulomb_motor_nm=first.coulomb_motor_nm,
+                   coulomb_load_nm=first.coulomb_load_nm, lag_s=first.lag_s, hold_epsilon=hold, **common)
+
+    pem = refit(first.parameters, first.epsilon_rad, False)
+    calls = first.evaluations + pem.evaluations
+    rescans = 0
+    if run.encoders is None and math.isfinite(pem.cost_nm):
+        # a global step in ε between local fits: the scan at the fit's linear parameters (which moved
+        # toward the plant's even where its ε did not)
+        bounds = (opt.epsilon_bounds_deg[0], max(opt.epsilon_bounds_deg[1], 2.0 * math.degrees(pem.epsilon_rad)))
+        again = _scan_at(run, pem.parameters, bounds, own_split=True)
+        best, rescans = _best_cell(again), 1
+        calls += again.evaluations
+        if best is not None and abs(best.epsilon_rad - pem.epsilon_rad) > 2.5 * math.radians(
+                _SCAN_STEP * opt.epsilon_resolution_deg):
+            other = refit(best.parameters, best.epsilon_rad, True)
+            calls += other.evaluations
+            pem = other if other.cost_nm < pem.cost_nm else pem
+    final = significant_terms(pem, keep_all=True)[1]
+    selection = {t: {**v, **({"z2": final[t]["z2"]} if t in final else {})} for t, v in selection.items()}
+    for term in opt.model_terms:  # the candidates the start did not show
+        if term not in selection:
+            selection[term] = {"kept": False, "screened": "coulomb column of the start cell" if term == "coulomb_motor"
+                               else "no friction in the start scan",
+                               **({"z2": cell.coulomb_z2, "threshold": math.log(n)} if term == "coulomb_motor" else {})}
+    pem = replace(pem, evaluations=calls, selection=selection)
+    detail = {"evaluations": calls, "converged": pem.converged, "message": pem.message,
+              "start_epsilon_deg": math.degrees(cell.epsilon_rad), "start_phi": cell.phi, "rescans": rescans,
+              "observer_gain_rad_per_nm": fast.gain_rad_per_nm, "terms": list(pem.terms.names())}
+    return pem, fast, detail
+
+
+def _check_stage(run: _Run, cell: Any, pem: PemFit, observer: Any) -> tuple[FitQuality, list[dict[str, float]]]:
+    """The fit's quality, and the paper's step 5 for the start and the result."""
+    from .assess import assess
+    from .frd import estimate_frd
+
+    rec, fs, problem = run.rec, run.fs, run.problem
+    quality = assess(pem, torque_rms_nm=run.torque_rms_nm, motor_samples=problem.acceleration_f.size,
+                     decimated_rate_hz=fs / problem.decimation, good_fit_ratio=run.opt.good_fit_ratio,
+                     noise_floor_ratio=float(run.cutoff["quantization_floor_ratio"]), cutoff_hz=problem.cutoff_hz,
                      observer_bandwidth_hz=observer.bandwidth_hz, sample_rate_hz=fs,
                      resonance_hz=_resonance_hz(pem.parameters))
-    notes += [f"approximate result: {r}" for r in quality.reasons]
+    run.notes.extend(f"approximate result: {r}" for r in quality.reasons)
     if quality.noise_limited:
-        notes.append(f"the model leaves {100 * quality.residual_ratio:.2f} % of the torque unexplained, but as "
-                     "white, stationary noise: the record's noise, not model error")
+        run.notes.append(f"the model leaves {100 * quality.residual_ratio:.2f} % of the torque unexplained, but as "
+                         "white, stationary noise: the record's noise, not model error")
+    frd = run.start.frd if run.start is not None else estimate_frd(
+        rec.torque_ref, rec.motor_velocity, fs, band_hz=run.band, resolution_hz=run.resolution, quality=False)
     iterations = []
-    frd = start.frd if start is not None else estimate_frd(rec.torque_ref, rec.motor_velocity, fs, band_hz=band,
-                                                           resolution_hz=resolution, quality=False)
-    for label, p, e, lag in (("start", base, cell.epsilon_rad, 0.0),
+    for label, p, e, lag in (("start", run.base, cell.epsilon_rad, 0.0),
                              ("result", pem.parameters, pem.epsilon_rad, pem.lag_s)):
         if not 0.0 < _resonance_hz(p) < 0.25 * fs:  # an open-loop simulation could not resolve it
-            notes.append(f"step 5 on the {label} skipped: its resonance is not below fs/4")
+            run.notes.append(f"step 5 on the {label} skipped: its resonance is not below fs/4")
             continue
         try:
             iterations.append({"frd_error": _step5(rec, frd, p, e, lag), "epsilon_deg": math.degrees(e)})
         except IdentificationError as err:  # an open-loop simulation of a poor start may diverge
-            notes.append(f"step 5 on the {label} failed: {err}")
-    st.done("check", fit=quality.to_dict())
+            run.notes.append(f"step 5 on the {label} failed: {err}")
+    return quality, iterations
+
+
+def _identification(run: _Run, pem: PemFit, quality: FitQuality, iterations: list[dict[str, float]],
+                    stages: list[StageResult], scan_evaluations: int) -> Identification:
+    from .start import measured_band_hz
 
     eps = pem.epsilon_rad
-    detected = math.degrees(eps) > opt.no_backlash_threshold_deg
+    detected = math.degrees(eps) > run.opt.no_backlash_threshold_deg
     if not detected:
-        notes.append(f"no backlash detected: ε̂ = {math.degrees(eps):.4f}° ≤ {opt.no_backlash_threshold_deg}°")
+        run.notes.append(f"no backlash detected: ε̂ = {math.degrees(eps):.4f}° ≤ {run.opt.no_backlash_threshold_deg}°")
     params = pem.parameters
     num, den = params.velocity_tf()
     return Identification(
         method=Method.HYBRID, parameters=params, epsilon_rad=eps,
-        epsilon_interval_rad=_epsilon_interval(pem, float(cut["position_step_rad"])),
-        evaluations=sc.evaluations + pem.evaluations, modes=modes(params), num=num, den=den, delay_s=1.0 / fs,
-        iterations=iterations, stages=st.items, source_samples=len(rec), sample_rate_hz=fs,
-        backlash_detected=detected, notes=notes, fit=quality, parameter_stderr=pem.relative_stderr,
-        parameter_interval=_intervals(pem), friction=_friction(pem, opt), current_loop=_current_loop(pem),
-        selection=pem.selection or None, measured_band_hz=measured_band_hz(frd) if start is not None else band)
+        epsilon_interval_rad=_epsilon_interval(pem, float(run.cutoff["position_step_rad"])),
+        evaluations=scan_evaluations + pem.evaluations, modes=modes(params), num=num, den=den,
+        delay_s=1.0 / run.fs, iterations=iterations, stages=stages, source_samples=len(run.rec),
+        sample_rate_hz=run.fs, backlash_detected=detected, notes=run.notes, fit=quality,
+        parameter_stderr=pem.relative_stderr, parameter_interval=_intervals(pem), friction=_friction(pem, run.opt),
+        current_loop=_current_loop(pem), selection=pem.selection or None,
+        measured_band_hz=measured_band_hz(run.start.frd) if run.start is not None else run.band)
 
 
 def _resonance_hz(p: TwoMassParameters) -> float:

@@ -69,6 +69,8 @@ class ScanCell:
     """The cell's rates with the projected J_m, B_m, J_l (None when the projection failed)."""
     coulomb_nm: float = 0.0
     """Motor Coulomb column's F [N·m] (standing in for the friction of both sides)."""
+    coulomb_z2: float = 0.0
+    """Wald statistic (F/σ_F)² of that column (0 without it)."""
 
 
 @dataclass(frozen=True)
@@ -131,8 +133,14 @@ def projected_cell(problem: ResidualProblem, rates: LoadRates, epsilon_rad: floa
         r = np.concatenate((r, load_weight_nm_per_rad * sim.load_error[1:-1:problem.decimation]))
     params = TwoMassParameters(J_m=J_m, J_l=J_l, B_m=B_m, B_l=rates.b * J_l, K=rates.omega2 * J_l,
                                D=rates.d * J_l) if J_m > 0 and J_l > 0 else None
-    fc = float(coef[3]) if len(coef) > 3 else 0.0
-    return ScanCell(float(epsilon_rad), float(phi), float(np.sqrt(np.mean(r * r))), params, fc)
+    fc, z2 = 0.0, 0.0
+    if len(coef) > 3:
+        fc = float(coef[3])
+        n = A.shape[0]
+        s2 = float(r @ r) / max(n - A.shape[1], 1)
+        var = s2 * float(np.linalg.pinv((A / sc).T @ (A / sc))[3, 3]) / sc[3] ** 2
+        z2 = fc * fc / var if var > 0 else math.inf
+    return ScanCell(float(epsilon_rad), float(phi), float(np.sqrt(np.mean(r * r))), params, fc, z2)
 
 
 def scan(problem: ResidualProblem, start: TwoMassParameters, bounds_deg: tuple[float, float], step_deg: float,
