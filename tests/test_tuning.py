@@ -277,9 +277,8 @@ def test_no_compensation_from_a_model_that_does_not_explain_the_data() -> None:
     from types import SimpleNamespace
 
     def ident(ratio: float) -> SimpleNamespace:
-        stage = SimpleNamespace(detail={"residual_ratio": ratio})
-        return SimpleNamespace(parameters=IDENTIFIED, epsilon_rad=EPS_ID, backlash_detected=True,
-                               stage=lambda name: stage)
+        fit = SimpleNamespace(residual_ratio=ratio, approximate=False, noise_limited=False)
+        return SimpleNamespace(parameters=IDENTIFIED, epsilon_rad=EPS_ID, backlash_detected=True, fit=fit)
 
     poor = design(ident(0.02), TuningOptions())
     assert not poor.backlash.enabled and poor.reference_filter_time_constant_s == 0.0

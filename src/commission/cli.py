@@ -47,7 +47,8 @@ outputs (in --out DIR, default ./commissioning/<date-time>/):
 The summary goes to stdout, progress and warnings to stderr; the last line says what to do next.
 
 exit codes: 0 ok, 1 other error, 2 config, 3 input file, 4 drive, 5 safety limit, 6 identification,
-            7 output file, 130 interrupted
+            7 output file, 8 done but the identification is approximate (result.json's fit.reasons say why),
+            130 interrupted
 """
 
 
@@ -578,13 +579,8 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
         fit = ident.get("fit")
         if fit is not None:
             rows.append(("model fit", f"{100 * fit['residual_ratio']:.3g} % of the torque unexplained"
-                         + (f", {100 * fit['dropped_fraction']:.1f} % of the record dropped"
-                            + (f" ({100 * fit['residual_ratio_all_samples']:.2g} % over all of it)"
-                               if "residual_ratio_all_samples" in fit else "")
-                            if fit["dropped_fraction"] else "")
                          + (" (white torque noise)" if fit.get("noise_limited") else "")
-                         + ("  APPROXIMATE: the model does not reproduce this axis (notes: -v)"
-                            if fit["approximate"] else "")))
+                         + ("  APPROXIMATE: " + "; ".join(fit.get("reasons", [])) if fit["approximate"] else "")))
     ctl = result.get("controller")
     if ctl is not None:
         vl, m, ver = ctl["velocity_loop"], ctl["margins"], ctl["verification"]
@@ -697,6 +693,10 @@ def _robust_rows(ctl: dict[str, Any]) -> list[tuple[str, str]]:
     return rows
 
 
+#: Exit code of a run that wrote all its outputs but whose identification is approximate.
+APPROXIMATE_EXIT_CODE = 8
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     term = _Terminal(quiet=args.json, verbose=args.verbose)
@@ -722,7 +722,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout.write("\n")
     else:
         term.result(_next_step(args, result))
-    return 0
+    # everything was written, but the model may be off by more than its intervals say
+    approximate = bool(((result.get("identification") or {}).get("fit") or {}).get("approximate"))
+    return APPROXIMATE_EXIT_CODE if approximate else 0
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -12,25 +12,16 @@ One loop model: the open-loop Bode plot and every margin on the page come from
 used, whose margins are controller.json's. The plant a verification ran on comes from the run
 (``true_plant``: the simulator's machine of a ``--sim`` run, or of a replayed log that says so).
 
-Figures are inline SVG drawn by :mod:`commission.svgplot`, with one inline script that zooms
-the x axis of line plots: no external script, stylesheet link or image file, so the page opens
-offline on any laptop. Each is a ``<figure class="plot" id="fig-…">`` holding one ``<svg>``. What the identification section shows is *recomputed* here from the
-Recording and the Identification with the identifier's public functions (the Identification
-holds numbers, not curves):
-
-* FRD of τ_ref → v_m (:func:`commission.ident.frd.estimate_frd`), and the FRD after the
-  backlash's effect is removed — the paper's step 6, output form:
-  v_lin = v_m − (v̂_m(ε̂) − v̂_m(0)) with the identified parameters
-  (:func:`commission.ident.backlash.simulate_deadzone`);
-* the fitted model and, for simulated runs, the true plant, both as sampled responses
-  H(j2πf)·e^{−j2πf·T_d}·sinc²(f/f_s) (one-sample delay, zero-order hold and the drive's
-  backward-difference velocity), so that they lie on the measured FRD;
-* the measured motor velocity against the dead-zone simulation with ε̂ (and with ε = 0 for
-  contrast), over the whole run and zoomed on the gap traversal where backlash shows most;
-* the output error RMS(v_m − v̂_m(ε)) over ε with the other parameters at their identified
-  values (a profile computed here, one simulation per ε), and the identifier's own search
-  history when its stage detail carries one (see :func:`search_history`);
-* the step-5 FRD error per iteration.
+Figures are inline SVG (:mod:`commission.svgplot`, one ``<figure class="plot" id="fig-…">`` each)
+with one inline zoom script, so the page opens offline on any laptop. The identification
+section's curves are *recomputed* here from the Recording and the Identification (which holds
+numbers, not curves) with the identifier's public functions: the measured FRD and the FRD with
+the backlash's effect removed (the paper's step 6, output form, v_m − (v̂_m(ε̂) − v̂_m(0))); the
+fitted model and, for simulated runs, the true plant as sampled responses
+H(j2πf)·e^{−j2πf·T_d}·sinc²(f/f_s), so that they lie on the measured FRD; the measured motor
+velocity against the dead-zone simulation with ε̂ and with ε = 0, whole and zoomed on the gap
+traversal; the output-error profile over ε with the identifier's own search history
+(:func:`search_history`); the step-5 FRD error per iteration.
 
 Public API: :func:`write_report`, :func:`render_report` (the HTML text), :func:`search_history`.
 """
@@ -77,15 +68,13 @@ _PROFILE_POINTS = 21
 _PROFILE_NEAR = 8
 
 
-# ---------------------------------------------------------------------------------------------
-# inputs
-# ---------------------------------------------------------------------------------------------
+# --- inputs ----------------------------------------------------------------------------------
 def search_history(identification: Any) -> list[dict[str, Any]]:
     """The identifier's evaluations of its ε search, in order, from its stage details.
 
     Recognised (the identifier decides what it keeps; absent → empty list):
 
-    * stage ``search`` (hybrid): ``detail["history"]`` = list of
+    * stage ``scan`` (hybrid): ``detail["history"]`` = list of
       ``{"epsilon_deg", "cost_nm", "phi"?, "omega_scale"?}`` in evaluation order;
     * stage ``paper``: ``detail["searches"]`` = list (one per pass) of
       ``{"history": [[epsilon_deg, loss], ...] or [{"epsilon_deg", "loss"}], "method"?, …}``.
@@ -95,7 +84,7 @@ def search_history(identification: Any) -> list[dict[str, Any]]:
     out: list[dict[str, Any]] = []
     for stage in getattr(identification, "stages", []) or []:
         detail = getattr(stage, "detail", {}) or {}
-        if stage.name == "search" and isinstance(detail.get("history"), Sequence):
+        if stage.name == "scan" and isinstance(detail.get("history"), Sequence):
             for h in detail["history"]:
                 if isinstance(h, Mapping) and "epsilon_deg" in h:
                     out.append({"pass": 0, "epsilon_deg": float(h["epsilon_deg"]),
@@ -114,9 +103,7 @@ def search_history(identification: Any) -> list[dict[str, Any]]:
     return out
 
 
-# ---------------------------------------------------------------------------------------------
-# the numbers behind the figures
-# ---------------------------------------------------------------------------------------------
+# --- the numbers behind the figures ----------------------------------------------------------
 @dataclass(frozen=True)
 class _Curves:
     frd: Any                                   # FRD of the measurement
@@ -139,11 +126,17 @@ def _sampled(resp: NDArray[np.complex128], f: NDArray[np.float64], fs: float, de
     return resp * np.exp(-2j * np.pi * f * delay_s) * np.sinc(f / fs) ** 2
 
 
-def _options(config: Mapping[str, Any] | None) -> tuple[tuple[float, float], float, tuple[float, float]]:
-    ident = (config or {}).get("identification") or {}
-    band = tuple(ident.get("band_hz", (0.1, 400.0)))
-    res = float(ident.get("resolution_hz", 0.1))
-    eb = tuple(ident.get("epsilon_bounds_deg", (0.01, 1.0)))
+def _options(config: Mapping[str, Any] | None, identification: Any = None,
+             n_samples: int = 0, fs: float = 0.0) -> tuple[tuple[float, float], float, tuple[float, float]]:
+    """FRD band and resolution (the identification's own when it has them) and the ε range."""
+    opts = (config or {}).get("identification") or {}
+    band = tuple(opts.get("band_hz") or (0.1, 400.0))
+    res = max(float(opts.get("resolution_hz") or 0.1), fs / n_samples if n_samples else 0.0)
+    for stage in getattr(identification, "stages", []) or []:
+        if stage.name == "start" and "band_hz" in stage.detail:
+            band = tuple(stage.detail["band_hz"])
+            res = float(stage.detail.get("resolution_hz", res))
+    eb = tuple(opts.get("epsilon_bounds_deg") or (0.01, 1.0))
     return (float(band[0]), float(band[1])), res, (float(eb[0]), float(eb[1]))
 
 
@@ -154,7 +147,7 @@ def _curves(rec: Recording, ident: Any, config: Mapping[str, Any] | None,
     from .ident.frd import estimate_frd
 
     fs = rec.sample_rate_hz
-    band, res, eb = _options(config)
+    band, res, eb = _options(config, ident, len(rec), fs)
     band = (band[0], min(band[1], 0.45 * fs))
     warnings: list[str] = []
     u, v = rec.torque_ref, rec.motor_velocity
@@ -229,9 +222,7 @@ def _zoom_window(rec: Recording, c: _Curves, eps: float) -> tuple[int, int, str]
     return max(0, i - half), min(n, i + half), f"a motor-velocity reversal at t = {i / fs:.4f} s"
 
 
-# ---------------------------------------------------------------------------------------------
-# identification figures
-# ---------------------------------------------------------------------------------------------
+# --- identification figures ------------------------------------------------------------------
 def _db(h: NDArray[np.complex128]) -> NDArray[np.float64]:
     return 20.0 * np.log10(np.maximum(np.abs(h), 1e-300))
 
@@ -366,7 +357,7 @@ def _fig_search(ident: Any, c: _Curves, history: list[dict[str, Any]]) -> str:
     else:
         best: list[Mapping[str, Any]] = []
         for s in ident.stages:
-            if s.name == "search" and isinstance(s.detail.get("best"), Sequence):
+            if s.name == "scan" and isinstance(s.detail.get("best"), Sequence):
                 best = [b for b in s.detail["best"] if isinstance(b, Mapping)]
         if best:
             ax_h = fig.panel(220, y_scale="log", x_label="ε [deg]", y_label="torque residual RMS [N·m]",
@@ -407,9 +398,7 @@ def _fig_iterations(ident: Any) -> str:
     return fig.svg("fig-iterations")
 
 
-# ---------------------------------------------------------------------------------------------
-# tuning and verification figures
-# ---------------------------------------------------------------------------------------------
+# --- tuning and verification figures ---------------------------------------------------------
 def _fmt_hz(f: float) -> str:
     return f"{f / 1e3:.3g} kHz" if f >= 1e3 else f"{f:.3g} Hz"
 
@@ -511,9 +500,7 @@ def _fig_move(v: Any, scenario: str, fig_id: str, title: str) -> str | None:
     return _verification_fig(fig_id, title, panels)
 
 
-# ---------------------------------------------------------------------------------------------
-# HTML
-# ---------------------------------------------------------------------------------------------
+# --- HTML ------------------------------------------------------------------------------------
 _CSS = """
 body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,'DejaVu Sans',sans-serif;margin:0;color:#1d1d1f;background:#f6f7f9}
 main{max-width:1100px;margin:0 auto;padding:16px 24px 48px}
@@ -605,9 +592,10 @@ def _tool_version() -> str:
 def _verdict(ident: Any, tuning: TuningOutcome | None) -> str:
     """The verdict box: ready / not ready and every reason (controller.json's), or why there is none."""
     notes: list[str] = []
-    if ident is not None and any("approximate" in n.lower() for n in getattr(ident, "notes", [])):
-        notes.append("The identification says its result is approximate: read its notes under "
-                     "'Identified model' before trusting the settings.")
+    quality = getattr(ident, "fit", None)
+    if quality is not None and quality.approximate:
+        notes.append("The identification says its result is approximate: " + "; ".join(quality.reasons)
+                     + ". Read its notes under 'Identified model' before trusting the settings.")
     if tuning is None:
         why = ("No identification in this run (--no-identify, or it failed): measured data only."
                if ident is None else "No controller settings in this run (--no-tune): the identified model only.")

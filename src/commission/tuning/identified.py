@@ -6,7 +6,7 @@ current-loop lag the identifier kept (if any), the record's sample rate, how wel
 fits (approximate, residual ratio, noise-limited), the Coulomb friction it kept and the band
 the record measured with good signal. :func:`read_identification` takes them from a
 :class:`~commission.ident.hybrid.Identification` (``.fit``, ``.measured_band_hz`` when it has
-them, else the joint stage's detail and a stated fallback), or from bare
+them, else a stated fallback), or from bare
 :class:`~commission.ident.twomass.TwoMassParameters` with ``epsilon_rad``.
 """
 
@@ -98,21 +98,10 @@ def _band(stated: Any, fs: float | None, excitation: tuple[float, float] | None
 
 
 def _fit(model: Any) -> FitFacts:
-    """``model.fit`` (a FitQuality) when the identification has one, else its joint stage's detail."""
+    """``model.fit`` (a FitQuality) when the identification has one (unknown otherwise)."""
     fit = getattr(model, "fit", None)
-    if fit is not None and hasattr(fit, "approximate"):
-        ratio = getattr(fit, "residual_ratio", None)
-        return FitFacts(bool(fit.approximate), None if ratio is None else float(ratio),
-                        bool(getattr(fit, "noise_limited", False)))
-    try:
-        detail = dict(model.stage("joint").detail)
-    except (AttributeError, KeyError, TypeError):
+    if fit is None or not hasattr(fit, "approximate"):
         return FitFacts()
-    ratio = detail.get("residual_ratio")
-    try:
-        ratio = None if ratio is None else float(ratio)
-    except (TypeError, ValueError):
-        ratio = None
-    if ratio is not None and not math.isfinite(ratio):
-        ratio = None
-    return FitFacts(bool(detail.get("approximate", False)), ratio, bool(detail.get("noise_limited", False)))
+    ratio = getattr(fit, "residual_ratio", None)
+    ratio = None if ratio is None or not math.isfinite(float(ratio)) else float(ratio)
+    return FitFacts(bool(fit.approximate), ratio, bool(getattr(fit, "noise_limited", False)))
