@@ -347,7 +347,7 @@ def _fit_stage(run: _Run, cell: Any, scan_detail: dict[str, Any]) -> tuple[PemFi
         return fit(run.problem, p, eps, terms, fast, alternates=alternates, coulomb_motor_nm=first.coulomb_motor_nm,
                    coulomb_load_nm=first.coulomb_load_nm, lag_s=first.lag_s, hold_epsilon=hold, **common)
 
-    pem = _with_disagreement(refit(first.parameters, first.epsilon_rad, False), first)
+    pem = refit(first.parameters, first.epsilon_rad, False)
     calls = first.evaluations + pem.evaluations
     rescans = 0
     if run.encoders is None and math.isfinite(pem.cost_nm):
@@ -359,7 +359,7 @@ def _fit_stage(run: _Run, cell: Any, scan_detail: dict[str, Any]) -> tuple[PemFi
         calls += again.evaluations
         if best is not None and abs(best.epsilon_rad - pem.epsilon_rad) > 2.5 * math.radians(
                 _SCAN_STEP * opt.epsilon_resolution_deg):
-            other = _with_disagreement(refit(best.parameters, best.epsilon_rad, True), first)
+            other = refit(best.parameters, best.epsilon_rad, True)
             calls += other.evaluations
             pem = other if other.cost_nm < pem.cost_nm else pem
     final = significant_terms(pem, keep_all=True)[1]
@@ -374,23 +374,6 @@ def _fit_stage(run: _Run, cell: Any, scan_detail: dict[str, Any]) -> tuple[PemFi
               "start_epsilon_deg": math.degrees(cell.epsilon_rad), "start_phi": cell.phi, "rescans": rescans,
               "observer_gain_rad_per_nm": fast.gain_rad_per_nm, "terms": list(pem.terms.names())}
     return pem, fast, detail
-
-
-def _with_disagreement(pem: PemFit, other: PemFit) -> PemFit:
-    """``pem`` with the difference to ``other`` (the same record fitted with the slow observer) added to its
-    covariance as a systematic error: two predictors of one plant that disagree beyond their noise say
-    the model does not describe the record as well as either fit's statistics assume."""
-    idx = [(pem.names.index(n), other.names.index(n)) for n in pem.names if n in other.names]
-    x = np.array([math.log(getattr(pem.parameters, n[3:])) if n.startswith("ln ") else 0.0 for n in pem.names])
-    y = np.array([math.log(getattr(other.parameters, n[3:])) if n.startswith("ln ") else 0.0 for n in other.names])
-    extra = {"eps_deg": (math.degrees(pem.epsilon_rad), math.degrees(other.epsilon_rad)),
-             "F_cm": (pem.coulomb_motor_nm, other.coulomb_motor_nm), "F_cl": (pem.coulomb_load_nm, other.coulomb_load_nm),
-             "T_c_us": (1e6 * pem.lag_s, 1e6 * other.lag_s)}
-    d = np.zeros(len(pem.names))
-    for i, j in idx:
-        name = pem.names[i]
-        d[i] = (x[i] - y[j]) if name.startswith("ln ") else extra[name][0] - extra[name][1]
-    return replace(pem, covariance=pem.covariance + np.outer(d, d))
 
 
 def _check_stage(run: _Run, cell: Any, pem: PemFit, observer: Any) -> tuple[FitQuality, list[dict[str, float]]]:
