@@ -79,7 +79,7 @@ def read_csv(path: str | os.PathLike[str]) -> Recording:
             try:
                 return _read(p, lines, mtime)
             except UnicodeDecodeError as err:
-                raise LogFormatError(f"{p}: not a text file (invalid UTF-8 after line {lines.lineno})") from err
+                raise LogFormatError(f"{p}: not a text file (invalid UTF-8 in line {lines.lineno + 1})") from err
     except FileNotFoundError as err:
         raise LogFormatError(f"{p}: no such file") from err
     except OSError as err:
@@ -238,8 +238,9 @@ def _parse_header(path: str, lineno: int, cells: Sequence[str]) -> list[str]:
         names.append(name)
     unknown = [n for n in names if n not in _UNITS]
     if unknown:
+        more = f" and {len(unknown) - 5:,} more" if len(unknown) > 5 else ""
         raise LogFormatError(
-            f"{path}: line {lineno}: unknown column(s) {', '.join(map(repr, unknown))}; "
+            f"{path}: line {lineno}: unknown column(s) {', '.join(map(repr, unknown[:5]))}{more}; "
             f"known: {', '.join(_UNITS)}"
         )
     duplicate = sorted({n for n in names if names.count(n) > 1})

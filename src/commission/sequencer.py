@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pydantic import ValidationError
+
 from .config import Config, config_to_dict
 from .drive import Drive, DriveError, Mode, State
 from .envelope import EnvelopeCheck, HeldLimits, check_envelope, check_held_limits, check_velocity_envelope
@@ -73,9 +75,12 @@ def simulated_plant(recording: Recording, config: dict[str, Any] | None = None) 
             return PlantParameters.model_validate_json(stored)
         if recording.drive.backend == "sim" and config is not None and isinstance(config.get("sim"), dict):
             return PlantParameters.model_validate(config["sim"])
-    except ValueError as err:  # pydantic's ValidationError is a ValueError
-        warnings.warn(f"the log's simulated plant is not valid, verifying on the identified model: {err}",
-                      stacklevel=2)
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        msg = str(first["msg"]).removeprefix("Value error, ")
+        warnings.warn(f"the log's simulated plant is not valid ({where + ': ' if where else ''}{msg}), "
+                      "verifying on the identified model", stacklevel=2)
     return None
 
 
@@ -101,8 +106,6 @@ def tune_and_export(out_dir: Path, identification: Any, options: Any, descriptio
         settings are then verified on the true machine; otherwise on the identified model with its
         backlash.
     """
-    from pydantic import ValidationError
-
     from .tuning import TuningError, controller_json, design, verify, write_controller_files
 
     settings = design(identification, options)
