@@ -353,9 +353,9 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     try:
         return _with_drive(args, term, config, drive, out_dir, identify, sim_plant, result)
     finally:
-        stop = release(drive)
-        if not stop.clean and not requested():
-            warnings.warn(f"closing the drive: {stop.describe()}", stacklevel=1)
+        problem = release(drive)
+        if problem and not requested():
+            warnings.warn(problem, stacklevel=1)
 
 
 def _with_drive(args: argparse.Namespace, term: _Terminal, config: Config, drive: Any, out_dir: Path, identify: Any,

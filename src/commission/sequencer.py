@@ -45,7 +45,7 @@ from .recording import Recording
 
 #: progress(label, done, total)
 Progress = Callable[[str, int, int], None]
-#: stage(name): a step of the run begins (limits, download, enable, excitation, stop, log,
+#: stage(name): a step of the run begins (limits, download, enable, excitation, log,
 #: identification, tuning, report)
 Stage = Callable[[str], None]
 #: identify(recording) -> an identification result (commission.ident)
@@ -224,17 +224,19 @@ _TORQUE_ON = (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
 
 
 def safe_stop(drive: Drive) -> StopOutcome:
-    """Quick stop, then disable, each tried twice and whatever the other did or raised (a
-    transfer cut by Ctrl-C can leave one stale answer on a link), then the drive's state read
-    back. Never raises: whatever is raised meanwhile (a bug in a backend, a lost link, Ctrl-C)
-    is reported in the outcome."""
+    """Quick stop, then disable, each tried whatever the other did or raised, then the drive's
+    state read back. A step that fails without a timeout is tried once more (a transfer cut by
+    Ctrl-C can leave one stale answer on a link); one that times out is not (a dead link costs a
+    timeout per step, and the state is then not read). Never raises: whatever is raised
+    meanwhile (a bug in a backend, a lost link, Ctrl-C) is reported in the outcome."""
     problems: dict[str, str] = {}  # text -> step, in order, each text once
     interrupted = False
+    timeouts = 0
 
-    def attempt(step: str, action: Callable[[], Any], prefix: str = "", tries: int = 2) -> bool:
-        nonlocal interrupted
+    def attempt(step: str, action: Callable[[], Any], prefix: str = "") -> bool:
+        nonlocal interrupted, timeouts
         last = ""
-        for _ in range(tries):
+        for _ in range(2):
             try:
                 action()
                 return True
@@ -243,29 +245,33 @@ def safe_stop(drive: Drive) -> StopOutcome:
                 last = f"{prefix}interrupted"
             except Exception as err:  # noqa: BLE001 - the stop must go on, whatever a backend raises
                 last = f"{prefix}{_reason(err)}"
+                if isinstance(err, TimeoutError):
+                    timeouts += 1
+                    break
         problems.setdefault(last, step)
         return False
 
     attempt("quick stop", drive.quick_stop, "quick stop failed: ")
     attempt("disable", drive.disable)
     state: list[State] = []
-    if attempt("state", lambda: state.append(drive.state), "state unreadable: ") and state[0] in _TORQUE_ON:
+    if timeouts < 2 and attempt("state", lambda: state.append(drive.state), "state unreadable: ") \
+            and state[0] in _TORQUE_ON:
         problems.setdefault(f"the drive still reports '{state[0].value}'", "state")
     disabled = bool(state) and state[0] not in _TORQUE_ON
     kept = [text for text, step in problems.items() if not (disabled and step == "disable")]
     return StopOutcome(disabled, tuple(kept), interrupted)
 
 
-def release(drive: Drive) -> StopOutcome:
-    """Stop and disable the drive, then close its link (each held past Ctrl-C); never raises."""
+def release(drive: Drive) -> str | None:
+    """Close the drive (its close() stops and disables it, then releases the link), held past
+    Ctrl-C; never raises: returns what went wrong. Only an experiment enables the drive, and it
+    stops the drive itself on every path (:func:`safe_stop`); this is the last word on the link."""
     with deferred(raise_after=False):
-        outcome = safe_stop(drive)
         try:
             drive.close()
         except Exception as err:  # noqa: BLE001 - closing a link must not hide the run's own outcome
-            outcome = StopOutcome(outcome.disabled, (*outcome.problems, f"closing the link failed: {_reason(err)}"),
-                                  outcome.interrupted)
-    return outcome
+            return f"closing the drive failed: {_reason(err)}"
+    return None
 
 
 class Sequencer:
@@ -441,8 +447,9 @@ class Sequencer:
         partial log is: Aborted for Ctrl-C (also when a library turned it into its own error)."""
         saved = self._save_partial(log_path, failure)
         tail = f"; partial log: {saved}" if saved else "; nothing was recorded"
-        if caused_by_interrupt(failure):
-            raise Aborted(f"interrupted: {stop.describe()}{tail}") from failure
+        if caused_by_interrupt(failure):  # also an error a library made of it, or one that came meanwhile
+            why = "" if isinstance(failure, KeyboardInterrupt) else f" ({_reason(failure)})"
+            raise Aborted(f"interrupted{why}: {stop.describe()}{tail}") from failure
         if not stop.clean:
             tail += f"; {stop.describe(also=True)}"
         if isinstance(failure, CommissionError):
