@@ -251,6 +251,7 @@ CTRL_C_POINTS = {
     "log": "stage: log",
     "identification": "stage: identification",
     "tuning": "stage: tuning",
+    "report": "stage: report",
 }
 
 
@@ -285,7 +286,7 @@ def test_ctrl_c_at_any_step_stops_the_drive_and_keeps_a_readable_log(point, tmp_
     assert "drive stopped and disabled" in lines[-1] or "error" not in lines[-1]
     assert stopped
     log = tmp_path / "out" / "run.mcap"
-    if point in ("excitation", "log", "identification", "tuning"):
+    if point in ("excitation", "log", "identification", "tuning", "report"):
         n, status = readable_log(log)
         assert status == ("aborted: interrupted (Ctrl-C)" if point == "excitation" else "complete")
         assert (n < 16000) == (point == "excitation")
