@@ -3,7 +3,9 @@
 Results (the summary table and a last ``next:`` line saying what to do next) go to
 stdout; progress, diagnostics and warnings to stderr; with ``--json`` stdout carries one
 JSON document and nothing else. Every CommissionError ends as one line on stderr and a
-non-zero exit code; no traceback (``-v`` shows the cause chain).
+non-zero exit code; no traceback (``-v`` shows the cause chain). Ctrl-C at any moment ends
+in exit 130 with the drive stopped and disabled (:mod:`commission.interrupt`); the heavy
+modules are imported only after that handler is in place.
 """
 
 from __future__ import annotations
@@ -12,18 +14,20 @@ import argparse
 import contextlib
 import json
 import sys
+import traceback
 import warnings
 from collections.abc import Iterator, Sequence
 from datetime import datetime
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+from .exceptions import Aborted, CommissionError, ConfigError, IdentificationError, LogFormatError, OutputError
+from .interrupt import caused_by_interrupt, handling_interrupts, requested
 
-from .config import Config, load_config
-from .exceptions import Aborted, CommissionError, IdentificationError, LogFormatError, OutputError
-from .recording import Recording
+if TYPE_CHECKING:
+    from .config import Config
+    from .recording import Recording
 
 EPILOG = """\
 modes:
@@ -48,7 +52,7 @@ The summary goes to stdout, progress and warnings to stderr; the last line says 
 
 exit codes: 0 ok, 1 other error, 2 config, 3 input file, 4 drive, 5 safety limit, 6 identification,
             7 output file, 8 done but the identification is approximate (result.json's fit.reasons say why),
-            130 interrupted
+            130 interrupted (Ctrl-C: the drive is stopped and disabled, the log kept)
 """
 
 
@@ -149,6 +153,9 @@ def _default_out_dir() -> Path:
 
 def read_log(path: Path) -> Recording:
     """A Recording from a .mcap or .csv file (truncated MCAP: what was written, with a warning)."""
+    from .mcaplog import regular_file_size
+
+    regular_file_size(str(path), "a log (.mcap or .csv)")  # a FIFO or a device would block or never end
     suffix = path.suffix.lower()
     if suffix == ".mcap":
         from .mcaplog import read_recording
@@ -162,6 +169,8 @@ def read_log(path: Path) -> Recording:
 
 
 def _recording_summary(rec: Recording) -> dict[str, Any]:
+    import numpy as np
+
     return {
         "samples": len(rec),
         "sample_rate_hz": rec.sample_rate_hz,
@@ -189,10 +198,17 @@ class _Terminal:
         self.console = Console(stderr=True, quiet=quiet, highlight=False)
         self._progress: Any = None
         self._tasks: dict[str, Any] = {}
+        self._tenths: dict[str, int] = {}
 
     def say(self, text: str) -> None:
         """A diagnostic line on stderr (rich markup), never wrapped (a log keeps it on one line)."""
         self.console.print(text, soft_wrap=True)
+
+    def stage(self, name: str) -> None:
+        """-v: ``stage: NAME`` on stderr as each step of a run on a drive begins (open, limits, download,
+        enable, excitation, log, identification, tuning, report)."""
+        if self.verbose:
+            self.console.print(f"stage: {name}", markup=False, soft_wrap=True)
 
     def result(self, text: str) -> None:
         """A plain result line on stdout, never wrapped (a path stays whole)."""
@@ -200,6 +216,12 @@ class _Terminal:
 
     def progress(self, label: str, done: int, total: int, detail: str = "") -> None:
         if self.quiet:
+            return
+        if self.verbose and not self.console.is_terminal:  # a log file gets a line per tenth instead of a bar
+            tenth = 10 * done // max(1, total)
+            if tenth > self._tenths.get(label, -1):
+                self._tenths[label] = tenth
+                self.console.print(f"{label}: {10 * tenth} %", markup=False, soft_wrap=True)
             return
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -307,6 +329,8 @@ def _replay(args: argparse.Namespace, config: Config, term: _Terminal, identify:
 
 
 def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
+    from .config import load_config
+
     config: Config = load_config(args.config)
     out_dir = args.out or _default_out_dir()
     result: dict[str, Any] = {"out_dir": str(out_dir), "files": []}
@@ -316,7 +340,7 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
         return _replay(args, config, term, identify, out_dir, result)
 
     from .drive import open_drive
-    from .sequencer import Sequencer
+    from .sequencer import release
 
     sim_plant = dict(config.sim)
     if args.seed is not None:
@@ -334,16 +358,33 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
             link_options["max_rate_hz"] = args.rate
         if args.excitation:
             link_options["excitation"] = args.excitation
+    if (args.apply or args.restore_from is not None) and not args.yes and not sys.stdin.isatty():
+        what = "--apply" if args.apply else "--restore-from"
+        raise ConfigError(f"{what} asks before it writes, and the input is not a terminal: pass --yes "
+                          "(nothing was run or written)")
+    term.stage("open")
     drive = open_drive(
         sim=args.sim, port=args.port, interface=args.interface, protocol=args.protocol,
         sim_plant=sim_plant if args.sim else None, sim_link=args.sim_link, **link_options,
     )
-    if args.restore_from is not None:
-        with drive:
-            return _restore(args, drive, out_dir, term, result)
-    if args.apply:  # refuse before anything moves, not after the experiment
-        from .exceptions import ConfigError
+    try:
+        return _with_drive(args, term, config, drive, out_dir, identify, sim_plant, result)
+    finally:
+        problem = release(drive)
+        if problem and not requested():
+            warnings.warn(problem, stacklevel=1)
 
+
+def _with_drive(args: argparse.Namespace, term: _Terminal, config: Config, drive: Any, out_dir: Path, identify: Any,
+                sim_plant: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
+    """The run on an open drive (the caller stops and closes it, whatever happens here)."""
+    import numpy as np
+
+    from .sequencer import Sequencer
+
+    if args.restore_from is not None:
+        return _restore(args, drive, out_dir, term, result)
+    if args.apply:  # refuse before anything moves, not after the experiment
         problem = None
         if args.no_identify or args.no_tune:
             problem = "--apply needs controller settings: do not combine it with --no-identify or --no-tune"
@@ -353,7 +394,6 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
         elif args.json and not args.yes:
             problem = "--apply with --json needs --yes (there is no one to ask)"
         if problem is not None:
-            drive.close()
             raise ConfigError(problem)
     config = config.model_copy(update={"tuning": _tuning_options(config, args)})
     budget = getattr(drive, "budget", None)
@@ -369,18 +409,17 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
         from .drive.sim import plant_from_options
 
         true_plant = plant_from_options(sim_plant)
-    with drive:
-        term.say(f"drive: {drive.info.vendor} {drive.info.product} ({drive.info.backend})")
-        sequencer = Sequencer(config, drive, out_dir, progress=term.progress, identify=identify,
-                              tune=not args.no_tune, true_plant=true_plant,
-                              description=getattr(drive, "description", None) or _description(args))
-        outcome = sequencer.run()
-        if "stream" in outcome.recording.metadata:
-            term.say(outcome.recording.metadata["stream"])
-        check = sequencer.measure_backlash() if args.measure_backlash else None
-        term.close()
-        if args.apply:
-            result["apply"] = _apply(args, drive, outcome, term, sequencer, config)
+    term.say(f"drive: {drive.info.vendor} {drive.info.product} ({drive.info.backend})")
+    sequencer = Sequencer(config, drive, out_dir, progress=term.progress, identify=identify,
+                          tune=not args.no_tune, true_plant=true_plant, stage=term.stage,
+                          description=getattr(drive, "description", None) or _description(args))
+    outcome = sequencer.run()
+    if "stream" in outcome.recording.metadata:
+        term.say(outcome.recording.metadata["stream"])
+    check = sequencer.measure_backlash() if args.measure_backlash else None
+    term.close()
+    if args.apply:
+        result["apply"] = _apply(args, drive, outcome, term, sequencer, config)
     if check is not None:
         _, reversals, check_log = check
         result["backlash_check"] = {
@@ -633,8 +672,14 @@ def _announce_compilation(term: _Terminal) -> Iterator[None]:
         def on_start(self, ev: event.Event) -> None:
             if not self.said:
                 self.said = True
-                term.say("compiling the numerical kernels (numba; once after an install, about half a minute; "
-                         "`commission --warm-cache` does it ahead)")
+                from . import jitcache
+
+                if jitcache.uncached_reason:
+                    term.say(f"compiling the numerical kernels (numba, about half a minute): {jitcache.uncached_reason}, "
+                             "so on every run")
+                else:
+                    term.say("compiling the numerical kernels (numba; once after an install, about half a minute; "
+                             "`commission --warm-cache` does it ahead)")
 
         def on_end(self, ev: event.Event) -> None:
             pass
@@ -698,6 +743,22 @@ APPROXIMATE_EXIT_CODE = 8
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The ``commission`` command; returns its exit code."""
+    with handling_interrupts():
+        try:
+            return _main(argv)
+        except KeyboardInterrupt:  # before or after _main's own handlers (start-up, the last print)
+            print("commission: interrupted", file=sys.stderr)
+            return Aborted.exit_code
+
+
+def _one_line(err: BaseException) -> str:
+    text = " ".join(str(err).split())
+    notes = " ".join(" ".join(str(n).split()) for n in getattr(err, "__notes__", ()))
+    return f"{text} ({notes})" if notes else text
+
+
+def _main(argv: Sequence[str] | None) -> int:
     args = build_parser().parse_args(argv)
     term = _Terminal(quiet=args.json, verbose=args.verbose)
     try:
@@ -709,14 +770,27 @@ def main(argv: Sequence[str] | None = None) -> int:
             result.setdefault("warnings", []).append(str(w.message))
     except CommissionError as err:
         term.close()
-        print(f"commission: error: {err}", file=sys.stderr)
-        if args.verbose and err.__cause__ is not None:
+        if requested() and not isinstance(err, Aborted):  # a library turned Ctrl-C into its own error
+            print(f"commission: error: interrupted ({_one_line(err)})", file=sys.stderr)
+            return Aborted.exit_code
+        print(f"commission: error: {_one_line(err)}", file=sys.stderr)
+        if args.verbose and err.__cause__ is not None and str(err.__cause__):
             print(f"  caused by: {type(err.__cause__).__name__}: {err.__cause__}", file=sys.stderr)
         return err.exit_code
     except KeyboardInterrupt:
         term.close()
         print("commission: interrupted", file=sys.stderr)
         return Aborted.exit_code
+    except Exception as err:  # noqa: BLE001 - a bug still ends in one line (the drive was stopped on the way out)
+        term.close()
+        if caused_by_interrupt(err):
+            print(f"commission: error: interrupted ({type(err).__name__}: {_one_line(err)})", file=sys.stderr)
+            return Aborted.exit_code
+        print(f"commission: internal error: {type(err).__name__}: {_one_line(err)} "
+              "(a bug in drive-commission: please report it with the output of -v)", file=sys.stderr)
+        if args.verbose:
+            traceback.print_exception(err, file=sys.stderr)
+        return 1
     if args.json:
         json.dump(result, sys.stdout, indent=2)
         sys.stdout.write("\n")

@@ -57,7 +57,7 @@ from typing import Annotated, Any, NamedTuple
 import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
-from pydantic import BaseModel, ConfigDict, Field, validate_call
+from pydantic import BaseModel, ConfigDict, Field, model_validator, validate_call
 
 from .ident.twomass import TwoMassParameters
 
@@ -89,6 +89,14 @@ MAX_RATE_STEP = 0.06
 MAX_LAG_STEP = 0.5
 #: Largest rate·h in the stiff zone of the smooth-sign Coulomb friction, rate = F/(v_s·J).
 _MAX_COULOMB_STEP = 1.0
+#: Fastest contact-mode rate |λ| [1/s] a plant may have (a 20 kHz mode): beyond any servo axis, and
+#: the most the simulation resolves at an affordable cost (~250 sub-steps per 8 kHz sample).
+MAX_MODE_RATE = 2.0 * math.pi * 20e3
+#: Largest stiffness F/(v_s·J) [1/s] of the smooth-sign Coulomb friction (cost grows with it, see Plant).
+MAX_COULOMB_RATE = 1e6
+#: Most RK4 sub-steps per sample a Plant takes on: more is a plant the sample rate cannot resolve
+#: (the compiled loop would run for hours, deaf to Ctrl-C).
+MAX_SUBSTEPS_PER_SAMPLE = 1024
 #: Mode changes located per sub-step before event location gives up for that sub-step
 #: (guards against chattering at a grazing contact; never reached in normal use).
 _MAX_EVENTS_PER_SUBSTEP = 16
@@ -97,24 +105,30 @@ _EVENT_TOL_RAD = 1e-13
 
 
 class PlantParameters(BaseModel):
-    """Physical parameters of the simulated axis (SI units; defaults: METHOD.md reference plant)."""
+    """Physical parameters of the simulated axis (SI units; defaults: METHOD.md reference plant).
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    Values must be finite and plausible for a servo axis: inertias from 1e-9 to 1e4 kg·m², the
+    fastest mode of the coupled axis below 20 kHz (:data:`MAX_MODE_RATE`) and the Coulomb
+    friction's smooth sign no stiffer than :data:`MAX_COULOMB_RATE`; anything else would not
+    be a machine, and could keep the compiled simulation busy for hours.
+    """
 
-    J_m: float = Field(4.78e-4, gt=0, description="Motor-side inertia [kg·m²].")
-    J_l: float = Field(1.92e-4, gt=0, description="Load-side inertia [kg·m²].")
-    B_m: float = Field(0.84e-2, ge=0, description="Motor-side viscous friction [N·m·s/rad].")
-    B_l: float = Field(0.53e-2, ge=0, description="Load-side viscous friction [N·m·s/rad].")
-    K: float = Field(23.10, gt=0, description="Shaft stiffness [N·m/rad].")
-    D: float = Field(1.54e-2, ge=0, description="Shaft damping [N·m·s/rad].")
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    J_m: float = Field(4.78e-4, ge=1e-9, le=1e4, description="Motor-side inertia [kg·m²].")
+    J_l: float = Field(1.92e-4, ge=1e-9, le=1e4, description="Load-side inertia [kg·m²].")
+    B_m: float = Field(0.84e-2, ge=0, le=1e6, description="Motor-side viscous friction [N·m·s/rad].")
+    B_l: float = Field(0.53e-2, ge=0, le=1e6, description="Load-side viscous friction [N·m·s/rad].")
+    K: float = Field(23.10, gt=0, le=1e9, description="Shaft stiffness [N·m/rad].")
+    D: float = Field(1.54e-2, ge=0, le=1e6, description="Shaft damping [N·m·s/rad].")
     epsilon_deg: float = Field(
         0.40, ge=0, lt=90, description="Backlash half-width ε [deg]; 0 = no backlash."
     )
     coulomb_motor_nm: float = Field(
-        0.0, ge=0, description="Coulomb friction level on the motor side [N·m]."
+        0.0, ge=0, le=1e5, description="Coulomb friction level on the motor side [N·m]."
     )
     coulomb_load_nm: float = Field(
-        0.0, ge=0, description="Coulomb friction level on the load side [N·m]."
+        0.0, ge=0, le=1e5, description="Coulomb friction level on the load side [N·m]."
     )
     coulomb_velocity_scale_rad_s: float = Field(
         1e-3,
@@ -124,6 +138,7 @@ class PlantParameters(BaseModel):
     current_loop_bandwidth_hz: float | None = Field(
         None,
         gt=0,
+        le=1e6,
         description="Bandwidth of a first-order lag from torque reference to motor torque [Hz]; "
         "None = ideal current loop.",
     )
@@ -137,6 +152,7 @@ class PlantParameters(BaseModel):
     torque_noise_nm: float = Field(
         0.0,
         ge=0,
+        le=1e5,
         description="Standard deviation of white noise added to the motor torque, one value "
         "per sample, held over the sample [N·m].",
     )
@@ -146,7 +162,24 @@ class PlantParameters(BaseModel):
     encoder_bits_load: int = Field(
         24, ge=1, le=32, description="Load encoder resolution: 2**bits counts per revolution."
     )
-    seed: int = Field(0, ge=0, description="Seed of the torque-noise generator.")
+    seed: int = Field(0, ge=0, lt=2**63, description="Seed of the torque-noise generator.")
+
+    @model_validator(mode="after")
+    def _plausible(self) -> PlantParameters:
+        rate = _fastest_contact_rate(self)
+        if not rate <= MAX_MODE_RATE:
+            raise ValueError(
+                f"the axis's fastest mode (J_m, J_l, B_m, B_l, K, D) is at {rate / (2 * math.pi):.4g} Hz, "
+                f"above {MAX_MODE_RATE / (2 * math.pi):.4g} Hz: not a servo axis"
+            )
+        for side, force, inertia in (("motor", self.coulomb_motor_nm, self.J_m), ("load", self.coulomb_load_nm, self.J_l)):
+            stiffness = force / (self.coulomb_velocity_scale_rad_s * inertia)
+            if stiffness > MAX_COULOMB_RATE:
+                raise ValueError(
+                    f"coulomb_{side}_nm / (coulomb_velocity_scale_rad_s · J) is {stiffness:.3g} 1/s, above "
+                    f"{MAX_COULOMB_RATE:.3g} 1/s: raise coulomb_velocity_scale_rad_s or lower the friction"
+                )
+        return self
 
     @property
     def epsilon_rad(self) -> float:
@@ -606,8 +639,9 @@ def _simulate(
             s[_TC] = ud + c
 
 
-def _fastest_contact_rate(params: PlantParameters) -> float:
-    """Largest |eigenvalue| [1/s] of the linear two-mass plant in contact."""
+def _fastest_contact_rate(params: Any) -> float:
+    """Largest |eigenvalue| [1/s] of the linear two-mass plant in contact (PlantParameters, or
+    anything with its J_m, J_l, B_m, B_l, K, D)."""
     a = np.array(
         [
             [-(params.B_m + params.D) / params.J_m, params.D / params.J_m, -params.K / params.J_m],
@@ -651,6 +685,11 @@ class Plant:
                 SUBSTEPS_PER_SAMPLE,
                 math.ceil(rate * self.sample_time_s / MAX_RATE_STEP),
                 math.ceil(wc * self.sample_time_s / MAX_LAG_STEP),
+            )
+        if substeps_per_sample > MAX_SUBSTEPS_PER_SAMPLE:
+            raise ValueError(
+                f"the plant needs {substeps_per_sample} sub-steps per sample at {self.sample_rate_hz:g} Hz "
+                f"(at most {MAX_SUBSTEPS_PER_SAMPLE}): its modes are too fast for this sample rate"
             )
         self.substeps_per_sample = int(substeps_per_sample)
         self._kernel = PlantKernel(

@@ -32,6 +32,10 @@ SIGNAL_UNITS: Mapping[str, str] = MappingProxyType(
 #: Signals every Recording has; the others are optional.
 REQUIRED_SIGNALS: tuple[str, ...] = ("torque_ref", "motor_velocity")
 
+#: Most samples a recording read from a file may hold (ten minutes at 8 kHz): the longest experiment a
+#: config allows, and a bound on the memory a replayed log can take.
+MAX_SAMPLES = 4_800_000
+
 #: Relative tolerance on sample spacing for a record to count as uniformly sampled.
 UNIFORM_RTOL = 1e-6
 #: Metadata key of the samples the link lost: their values in the arrays are interpolated (positions,

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +26,7 @@ from typing import Any
 
 import yaml
 
-from ..exceptions import DriveError, OutputError
+from ..exceptions import DriveError, LogFormatError, OutputError
 from .settings import ControllerSettings, TuningError
 
 __all__ = [
@@ -40,6 +41,18 @@ STORE_SIGNATURE = 0x65766173
 STORE_PARAMETER = "store_parameters"
 
 _INT_TYPES = {"int8", "uint8", "int16", "uint16", "int32", "uint32"}
+_INT_RANGES = {"int8": (-(2**7), 2**7 - 1), "uint8": (0, 2**8 - 1), "int16": (-(2**15), 2**15 - 1),
+               "uint16": (0, 2**16 - 1), "int32": (-(2**31), 2**31 - 1), "uint32": (0, 2**32 - 1)}
+_REAL_MAX = {"real32": 3.4028234663852886e38, "real64": 1.7976931348623157e308}
+
+
+def file_name_part(name: str) -> str:
+    """``name`` as a safe part of a file name: letters, digits, ``_``, ``-`` and single dots
+    (anything else becomes ``_``), no leading dot, at most 64 characters (a drive description's
+    name goes into ``controller-<name>.yaml``, and must not reach outside the output folder)."""
+    safe = re.sub(r"[^A-Za-z0-9._-]|\.{2,}", "_", str(name))
+    safe = re.sub(r"_{2,}", "_", safe).strip("._")[:64]
+    return safe or "drive"
 
 
 # --------------------------------------------------------------------------------------------
@@ -244,7 +257,7 @@ def write_controller_files(out_dir: str | Path, settings: ControllerSettings, ve
                         "reviewed (commission --apply refuses them)",
                 "parameters": [v.as_dict() for v in params],
             }
-            py = folder / f"controller-{description.name}.yaml"
+            py = folder / f"controller-{file_name_part(description.name)}.yaml"
             py.write_text(yaml.safe_dump(ydoc, sort_keys=False, allow_unicode=True), encoding="utf-8")
             paths.append(py)
     except OSError as err:
@@ -353,19 +366,66 @@ def restore_values(results: Mapping[str, Sequence[Mapping[str, Any]]] | str | Pa
                    description: Any) -> list[ParameterValue]:
     """The old values logged by :func:`apply` (the first ``old_values`` event), as parameters to write.
 
-    ``results``: ``commission.mcaplog.read_results(path)`` or the path itself.
+    ``results``: ``commission.mcaplog.read_results(path)`` or the path itself. Every value is
+    checked as a tuning value would be, before anything is written: a parameter the description
+    has (not the store command), in its unit, a finite number, an integer for integer objects,
+    within the type's range and the description's ``min``/``max``.
+
+    :raises LogFormatError: the log's entry is malformed (not a list of name/value objects).
+    :raises TuningError: a value is outside what the description allows (nothing is written).
     """
     if isinstance(results, (str, Path)):
         from ..mcaplog import read_results
 
         results = read_results(results)
-    events = [e for e in results.get(PARAMETER_TOPIC, []) if e.get("event") == "old_values"]
+    events = [e for e in results.get(PARAMETER_TOPIC, []) if isinstance(e, Mapping) and e.get("event") == "old_values"]
     if not events:
         raise TuningError(f"the log has no old parameter values on {PARAMETER_TOPIC}: nothing to restore")
-    out = []
-    for item in events[0]["values"]:
-        spec = description.parameter(item["name"])
-        raw = float(item["value"]) / spec.scale
-        out.append(ParameterValue(name=item["name"], value=float(item["value"]), unit=spec.unit, raw=raw,
-                                  requested=float(item["value"]), clamped=False, object=str(spec.object)))
+    items = events[0].get("values")
+    if not isinstance(items, list) or not items:
+        raise LogFormatError(f"the log's old parameter values on {PARAMETER_TOPIC} are not a list of values")
+    out: list[ParameterValue] = []
+    problems: list[str] = []
+    for item in items:
+        name = item.get("name") if isinstance(item, Mapping) else None
+        value = item.get("value") if isinstance(item, Mapping) else None
+        if not isinstance(name, str) or type(value) not in (int, float):
+            raise LogFormatError(f"the log's old parameter values on {PARAMETER_TOPIC}: entry {str(item)[:80]!r} "
+                                 "is not a name with a number")
+        if name == STORE_PARAMETER or any(p.name == name for p in out):
+            raise LogFormatError(f"the log's old parameter values on {PARAMETER_TOPIC} list '{name}' "
+                                 + ("twice" if name != STORE_PARAMETER else "(a command, not a setting)"))
+        spec = description.parameter(name)
+        problem = _restore_problem(name, float(value), item.get("unit", spec.unit), spec)
+        if problem:
+            problems.append(problem)
+            continue
+        out.append(ParameterValue(name=name, value=float(value), unit=spec.unit, raw=float(value) / spec.scale,
+                                  requested=float(value), clamped=False, object=str(spec.object),
+                                  min_value=None if spec.min is None else spec.min * spec.scale,
+                                  max_value=None if spec.max is None else spec.max * spec.scale))
+    if problems:
+        raise TuningError("refusing to restore, nothing written: " + "; ".join(problems))
     return out
+
+
+def _restore_problem(name: str, value: float, unit: Any, spec: Any) -> str | None:
+    """Why ``value`` (in ``unit``) cannot be written to ``spec``; None when it can."""
+    if unit != spec.unit:
+        return f"{name} is logged in {unit!r}, the drive description says {spec.unit!r}"
+    if not math.isfinite(value):
+        return f"{name} = {value} is not a finite number"
+    raw = value / spec.scale
+    if spec.type in _INT_TYPES:
+        if abs(raw - round(raw)) > 1e-6 * max(1.0, abs(raw)):
+            return f"{name} = {value:g} {spec.unit} is not a whole number of its unit ({spec.scale:g})"
+        lo, hi = _INT_RANGES[spec.type]
+        if not lo <= round(raw) <= hi:
+            return f"{name} = {value:g} {spec.unit} is outside the range of {spec.type}"
+    elif abs(raw) > _REAL_MAX.get(spec.type, math.inf):
+        return f"{name} = {value:g} {spec.unit} is outside the range of {spec.type}"
+    if (spec.min is not None and raw < spec.min) or (spec.max is not None and raw > spec.max):
+        lo = "-∞" if spec.min is None else f"{spec.min * spec.scale:g}"
+        hi = "∞" if spec.max is None else f"{spec.max * spec.scale:g}"
+        return f"{name} = {value:g} {spec.unit} outside {lo}…{hi}"
+    return None

@@ -188,6 +188,7 @@ class CanopenDrive(Drive):
         self._excite_mode = Mode.CYCLIC_SYNC_TORQUE
         self._run_total = 0
         self._closed_link = False
+        self._downloaded: bytes | None = None  # the waveform in the drive's player (prepare_excitation)
 
         if network is None:
             network = canopen.Network()
@@ -518,13 +519,25 @@ class CanopenDrive(Drive):
         if shown != int(mode):
             raise DriveError(f"node {self.node_id} did not take mode {mode.name}: 0x6061 shows {shown}")
 
-    def _write_limits(self, max_torque_nm: float, max_speed_rad_s: float, max_travel_rad: float | None) -> None:
+    def _limit_units(self, max_torque_nm: float, max_speed_rad_s: float) -> tuple[int, int]:
+        """0x6072 in whole per mille of the rated torque and 0x6080 in whole rpm, rounded down."""
+        if not (math.isfinite(max_torque_nm) and math.isfinite(max_speed_rad_s)):
+            raise ConfigError(f"limits must be finite, got {max_torque_nm:g} N·m and {max_speed_rad_s:g} rad/s")
         permille = math.floor(max_torque_nm / self.rated_torque_nm * 1000)
         if not 1 <= permille <= 0xFFFF:
             raise ConfigError(f"torque limit {max_torque_nm:g} N·m is {permille} per mille of the rated torque: out of range")
         rpm = math.floor(max_speed_rad_s * 60 / (2 * math.pi))
         if rpm < 1:
             raise ConfigError(f"speed limit {max_speed_rad_s:g} rad/s is below 1 rpm, the unit of 0x6080")
+        return permille, rpm
+
+    def limits_as_held(self, max_torque_nm: float, max_speed_rad_s: float) -> tuple[float, float]:
+        """The torque [N·m] and speed [rad/s] limits as this drive will hold them (sequencer hook)."""
+        permille, rpm = self._limit_units(max_torque_nm, max_speed_rad_s)
+        return permille * self.rated_torque_nm / 1000, rpm * 2 * math.pi / 60
+
+    def _write_limits(self, max_torque_nm: float, max_speed_rad_s: float, max_travel_rad: float | None) -> None:
+        permille, rpm = self._limit_units(max_torque_nm, max_speed_rad_s)
         self.sdo.write(MAX_TORQUE, permille)
         self.sdo.write(MAX_MOTOR_SPEED, rpm)
         if max_travel_rad is not None and POSITION_LIMIT_MIN.index in self.node.object_dictionary:
@@ -554,6 +567,31 @@ class CanopenDrive(Drive):
                 code=e.code,
             )
 
+    def prepare_excitation(self, waveform: NDArray[np.float64], sample_rate_hz: float, mode: Mode) -> None:
+        """Before enabling (sequencer hook): the trace path checks the rate and downloads the
+        waveform (seconds on a slow link); the streamed path checks the band and 0x6071's range."""
+        if self.method is ExcitationMethod.STREAMED:
+            budget = self.budget
+            assert budget is not None
+            self._check_band(self.band_hz if self.band_hz is not None else waveform_band_hz(waveform, sample_rate_hz))
+            if np.abs(np.round(waveform / self.rated_torque_nm * 1000)).max() > 0x7FFF:
+                raise DriveError("torque waveform exceeds the range of 0x6071 (INT16 per mille of rated torque)")
+            return
+        self._download(waveform, sample_rate_hz, mode)
+
+    def _download(self, waveform: NDArray[np.float64], sample_rate_hz: float, mode: Mode) -> None:
+        """The waveform into the drive's player, unless exactly this one is there already."""
+        trace = self.description.trace
+        assert trace is not None
+        rate = self._trace_rate_hz
+        if abs(sample_rate_hz - rate) > 1e-9 * rate:
+            raise ConfigError(f"drive '{self.description.name}' plays waveforms at {rate:g} Hz, not {sample_rate_hz:g} Hz")
+        data = waveform_to_bus(waveform, mode, trace.waveform, self.rated_torque_nm, self.motor_increments)
+        if self._downloaded != data:
+            self._downloaded = None
+            self.sdo.download_block(trace.waveform.samples, data)
+            self._downloaded = data
+
     def _excite(
         self, waveform: NDArray[np.float64], sample_rate_hz: float, mode: Mode, progress: ProgressCallback | None
     ) -> Recording:
@@ -570,10 +608,8 @@ class CanopenDrive(Drive):
         trace = self.description.trace
         assert trace is not None
         rate = self._trace_rate_hz
-        if abs(sample_rate_hz - rate) > 1e-9 * rate:
-            raise ConfigError(f"drive '{self.description.name}' plays waveforms at {rate:g} Hz, not {sample_rate_hz:g} Hz")
-        data = waveform_to_bus(waveform, mode, trace.waveform, self.rated_torque_nm, self.motor_increments)
-        self.sdo.download_block(trace.waveform.samples, data)
+        self._download(waveform, sample_rate_hz, mode)
+        self._downloaded = None  # the player consumes it: a next run downloads again
         emcy_mark = len(self.emcy)
         total = waveform.size
         self._run_total = total
