@@ -37,7 +37,6 @@ from sim_drive.plant import Plant, PlantParameters
 
 FS = 8000.0
 J_M = 4.78e-4
-JACOBIAN: str | None = None
 
 
 @dataclass(frozen=True)
@@ -117,8 +116,7 @@ def run(case: Case, method: Method, compare: bool) -> dict:
     rec = record(case)
     # the default limit (5 % unexplained torque) would refuse the plants with unmodelled
     # friction / lag; here every estimate is shown, with its residual ratio
-    opts = IdentificationOptions(method=method, compare_searches=compare and method is Method.HYBRID,
-                                 max_residual_ratio=1.0, **({"jacobian": JACOBIAN} if JACOBIAN else {}))
+    opts = IdentificationOptions(method=method)
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         res = identify(rec, opts)
@@ -126,9 +124,6 @@ def run(case: Case, method: Method, compare: bool) -> dict:
         return {"case": case.name, "method": method.value, "error": str(err),
                 "wall": time.perf_counter() - t0}
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    # the search comparison (grid and Bayes, --no-compare skips it) is this benchmark's own extra
-    # work, not part of an identification: its wall time is not counted
-    wall -= sum(s.seconds for s in res.stages if s.name == "search_compare")
     true = case.params()
     mt, mi = modes(true), res.modes
     row = {"case": case.name, "method": method.value, "eps_true": case.eps_deg, "eps": res.epsilon_deg,
@@ -141,22 +136,13 @@ def run(case: Case, method: Method, compare: bool) -> dict:
            "frd_err": [it["frd_error"] for it in res.iterations]}
     for k in ("J_m", "J_l", "B_m", "B_l", "K", "D"):
         row[k] = pct(getattr(res.parameters, k), getattr(true, k))
-    if method is Method.HYBRID:
-        row["evals_joint"] = res.evaluations_joint
-        j = res.stage("joint").detail
-        row["dropped"] = j.get("dropped_fraction", 0.0)
-        row["ratio"] = j.get("residual_ratio", math.nan)
-        row["ratio_all"] = j.get("residual_ratio_all_samples", math.nan)
-        row["approximate"] = bool(j.get("approximate", False))
-        row["refined"] = bool(j.get("refined_by_predictor", False))
-        row["noise_limited"] = bool(j.get("noise_limited", False))
+    if method is Method.HYBRID and res.fit is not None:
+        row["ratio"] = res.fit.residual_ratio
+        row["approximate"] = res.fit.approximate
+        row["noise_limited"] = res.fit.noise_limited
+        kept = [t for t, v in (res.selection or {}).items() if v["kept"]]
         row["terms"] = "".join(c for t, c in (("coulomb_motor", "m"), ("coulomb_load", "l"),
-                                              ("current_loop", "c")) if t in j.get("terms", [])) or "-"
-        if compare:
-            c = res.stage("search_compare").detail
-            row["cmp"] = (c["grid_evaluations"], c["bayes_evaluations"],
-                          c["grid_best"]["epsilon_deg"], c["bayes_best"]["epsilon_deg"],
-                          c["grid_seconds"], c["bayes_seconds"])
+                                              ("current_loop", "c")) if t in kept) or "-"
     return row
 
 
@@ -165,43 +151,33 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="a subset of the plants")
     ap.add_argument("--no-paper", action="store_true", help="hybrid method only")
     ap.add_argument("--paper-quick", action="store_true", help="paper method on the reference plant only")
-    ap.add_argument("--no-compare", action="store_true", help="skip the grid/Bayes search comparison")
-    ap.add_argument("--jacobian", choices=("broyden", "finite_difference"), default=None,
-                    help="the joint fit's Jacobian (default: IdentificationOptions' default)")
     ap.add_argument("--only", default=None, help="comma-separated plant names")
     args = ap.parse_args(argv)
     cases = [c for c in FULL if (not args.quick or c.name in QUICK_NAMES)
              and (args.only is None or c.name in args.only.split(","))]
-    global JACOBIAN
-    JACOBIAN = args.jacobian
     methods = [Method.HYBRID] + ([] if args.no_paper else [Method.PAPER])
     # warm up the compiled kernels (first compile is not part of the figures)
     identify(record(FULL[0]), IdentificationOptions())
-    print(f"# {len(cases)} plants, methods {[m.value for m in methods]}, jacobian "
-          f"{JACOBIAN or IdentificationOptions().jacobian}; load average "
+    print(f"# {len(cases)} plants, methods {[m.value for m in methods]}; load average "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (wall times inflate with load)")
     rows = []
     for case in cases:
         for m in methods:
             if m is Method.PAPER and args.paper_quick and case.name != "reference":
                 continue
-            row = run(case, m, not args.no_compare)
+            row = run(case, m, False)
             rows.append(row)
             _print_row(row)
             sys.stdout.flush()
     print()
-    print("stage times [s] (hybrid): frd / tffit / start / search / joint / predictor / check; total wall "
-          "(without the search comparison), cpu (with it)")
+    print("stage times [s] (hybrid): start / scan / fit / check; total wall, cpu")
     for r in rows:
         if r["method"] == "hybrid" and "stages" in r:
             s = r["stages"]
-            print(f"  {r['case']:<20} " + " / ".join(f"{s.get(k, 0):.2f}" for k in
-                  ("frd", "tffit", "start", "search", "joint", "predictor", "check"))
-                  + f";  {r['wall']:.2f}, {r['cpu']:.2f}  (joint evals {r.get('evals_joint')}, "
-                  f"dropped {100 * r.get('dropped', 0):.1f} %, residual {100 * r.get('ratio', math.nan):.3f} % "
-                  f"of τ_ref, {100 * r.get('ratio_all', math.nan):.3f} % on all samples"
+            print(f"  {r['case']:<20} " + " / ".join(f"{s.get(k, 0):.2f}" for k in ("start", "scan", "fit", "check"))
+                  + f";  {r['wall']:.2f}, {r['cpu']:.2f}  (evaluations {r['evals']}, residual "
+                  f"{100 * r.get('ratio', math.nan):.3f} % of τ_ref"
                   f"{', approximate' if r.get('approximate') else ''}"
-                  f"{', refined by the predictor' if r.get('refined') else ''}"
                   f"{', white noise (noise-limited)' if r.get('noise_limited') else ''})")
     hyb = [r for r in rows if r["method"] == "hybrid" and "stages" in r]
     if hyb:
@@ -210,13 +186,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"time per identification (target ≤ 2 s on 2 cores): median {walls[len(walls) // 2]:.2f} s, "
               f"max {walls[-1]:.2f} s; within target {len(hyb) - len(over)} of {len(hyb)}"
               + (f"; over: {', '.join(over)}" if over else ""))
-    cmp_rows = [r for r in rows if "cmp" in r]
-    if cmp_rows:
-        print()
-        print("search evaluations: coarse grid (default) | full grid | Bayes  — best ε [deg] grid / Bayes, seconds grid / Bayes")
-        for r in cmp_rows:
-            g, b, ge, be, gs, bs = r["cmp"]
-            print(f"  {r['case']:<20} {r['evals']:>4} | {g:>4} | {b:>4}   {ge:.2f} / {be:.2f}   {gs:.2f} / {bs:.2f}")
     return 0
 
 

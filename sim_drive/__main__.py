@@ -3,6 +3,7 @@
     python -m sim_drive --canopen --interface socketcan --channel vcan0 [--node-id 1]
     python -m sim_drive --slcan  [--config FILE] [--seed N]   # prints the pty's path first
     python -m sim_drive --modbus [--config FILE] [--seed N]   # prints the pty's path first
+    python -m sim_drive --slcan --line-rate 1000000 --frame-loss 0.001 --bus-load 0.2 --identity generic
 
 One option per link; the plant and drive options are shared by all links. ``--slcan``
 and ``--modbus`` open a pty and print its path as the first line on stdout: point
@@ -47,6 +48,14 @@ def build_parser() -> argparse.ArgumentParser:
                                   "hangup the playback sample; +: and every later one); repeatable")
     serial_opts.add_argument("--watchdog", type=float, default=1.0, metavar="S",
                              help="--modbus: fault the drive when the host is silent this long while enabled (0: off)")
+    bus = p.add_argument_group("bus and drive identity (with --canopen / --slcan)")
+    bus.add_argument("--frame-loss", type=float, default=0.0, metavar="P",
+                     help="probability that a cyclic frame (SYNC, TPDO, RPDO) is lost (default 0)")
+    bus.add_argument("--bus-load", type=float, default=0.0, metavar="FRACTION",
+                     help="other nodes' traffic on the bus, as a fraction of 1 Mbit/s (default 0)")
+    bus.add_argument("--identity", metavar="NAME|VENDOR:PRODUCT",
+                     help="report another drive's 0x1018: a description name (yaskawa-sigma7), 'generic' "
+                          "(vendor 0, a drive no description claims) or hex VENDOR:PRODUCT")
     drive = p.add_argument_group("drive and plant")
     drive.add_argument("--config", metavar="FILE",
                        help="commissioning recipe whose 'sim' section is the plant (as commission --sim --config)")
@@ -58,21 +67,54 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _identity(text: str | None) -> tuple[int, int, str] | None:
+    """``--identity``: (vendor id, product code, device name) to report, or None for the simulator's own."""
+    if text is None:
+        return None
+    if text == "generic":
+        return 0, 0, "CiA 402 servo drive"
+    if ":" in text:
+        vendor, product = (int(part, 16) for part in text.split(":", 1))
+        return vendor, product, "CiA 402 servo drive"
+    from commission.drive.description import load_description
+
+    desc = load_description(text)
+    if desc.identity is None:
+        raise ValueError(f"drive description '{text}' has no identity to pose as")
+    codes = desc.identity.product_codes or (0,)
+    return desc.identity.vendor_id, codes[0], desc.summary or desc.name
+
+
+def _node_options(args: argparse.Namespace) -> dict[str, object]:
+    options: dict[str, object] = {"frame_loss": args.frame_loss, "bus_load": args.bus_load}
+    identity = _identity(args.identity)
+    if identity is not None:
+        options["identity"] = identity
+    if args.seed is not None:
+        options["seed"] = args.seed
+    return options
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         device = _device(args)
-    except Exception as err:  # a bad config or plant: one line
+        node_options = _node_options(args)
+    except Exception as err:  # a bad config, plant or option: one line
         print(f"sim_drive: {err}", file=sys.stderr)
         return 2
     if args.slcan or args.modbus:
-        return _serve_pty(args, device)
+        return _serve_pty(args, device, node_options)
     if args.canopen:
         from .canopen_slave import CanopenSlave
 
         options = {"bitrate": args.bitrate} if args.bitrate else {}
-        node = CanopenSlave(device, node_id=args.node_id, channel=args.channel, interface=args.interface,
-                            pace=args.pace or None, **options)
+        try:
+            node = CanopenSlave(device, node_id=args.node_id, channel=args.channel, interface=args.interface,
+                                pace=args.pace or None, **node_options, **options)
+        except ValueError as err:
+            print(f"sim_drive: {err}", file=sys.stderr)
+            return 2
     else:  # pragma: no cover - argparse requires one link
         return 2
     stop = threading.Event()
@@ -107,7 +149,7 @@ def _device(args: argparse.Namespace) -> SimulatedDevice:
     return SimulatedDevice(plant_from_options(plant), **options)
 
 
-def _serve_pty(args: argparse.Namespace, device: SimulatedDevice) -> int:
+def _serve_pty(args: argparse.Namespace, device: SimulatedDevice, node_options: dict[str, object]) -> int:
     from .serial_slave import ModbusRtuServer, SlcanAdapter, parse_fault
 
     try:
@@ -118,7 +160,12 @@ def _serve_pty(args: argparse.Namespace, device: SimulatedDevice) -> int:
     pace = args.pace or None
     server: SlcanAdapter | ModbusRtuServer
     if args.slcan:
-        server = SlcanAdapter(device, node_id=args.node_id, pace=pace, faults=faults, line_rate_bps=args.line_rate)
+        try:
+            server = SlcanAdapter(device, node_id=args.node_id, pace=pace, faults=faults, line_rate_bps=args.line_rate,
+                                  node_options=node_options)
+        except ValueError as err:
+            print(f"sim_drive: {err}", file=sys.stderr)
+            return 2
     else:
         server = ModbusRtuServer(device, pace=pace, faults=faults, line_rate_bps=args.line_rate,
                                  watchdog_s=args.watchdog)
@@ -138,8 +185,12 @@ def _serve_pty(args: argparse.Namespace, device: SimulatedDevice) -> int:
     finally:
         server.close()
         if isinstance(server, SlcanAdapter):
+            node = server.node
             print(f"sim_drive: {server.frames_from_host} frames from the host, {server.frames_to_host} to it, "
-                  f"{server.bad_lines} malformed lines {server.last_bad_line!r}", file=sys.stderr)
+                  f"{server.overruns} dropped by the line, {server.bad_lines} malformed lines "
+                  f"{server.last_bad_line!r}; {node.cycles_produced} cycles on the drive's clock, "
+                  f"{node.held_cycles} with a late setpoint, {node.frames_dropped} frames lost on the bus",
+                  file=sys.stderr)
         else:
             print(f"sim_drive: {server.requests} requests, {server.responses} responses, "
                   f"{server.crc_errors} with a bad CRC", file=sys.stderr)

@@ -15,10 +15,24 @@ this module adds what a drive's firmware does around it:
 * the waveform player and trace buffer at 0x2100–0x2111 (``drivers/sim``);
 * PDOs on SYNC: synchronous RPDOs applied and synchronous TPDOs sent at each SYNC
   (``LocalNode`` does neither), for host-streamed cyclic synchronous torque;
+* the drive's own cycle clock as SYNC producer (0x1005 bit 30, period 0x1006,
+  counter 0x1019), the way a drive that keeps time does it;
+* what a real bus and adapter add: frames lost at random (``frame_loss``), other
+  nodes' traffic (``bus_load``), and an identity (0x1018) to pose as another drive;
 * test hooks: lose the link, stall one object's SDO answers, refuse a command.
 
 Time: the waveform player runs in its own thread, as fast as the plant computes
 (``pace=None``) or at ``pace`` × real time. In cyclic operation the plant runs
+exactly one communication cycle (0x1006, or 0x60C2) per SYNC the drive produces,
+whenever the host's frames arrive: a setpoint that arrived after its SYNC is
+not applied, the previous one is held, and the TPDO (0x6077) says which torque
+was applied. When the simulation itself falls behind (its thread was not
+scheduled: a real drive's clock never is), its clock slips rather than produce
+the missed cycles back to back: the host still gets a whole cycle to answer
+each SYNC, as from a drive on time, and the plant still runs one cycle per SYNC
+(slips counted in :attr:`CanopenSlave.clock_slips`, beyond ``SLIP_AFTER`` of a cycle).
+Likewise a cycle waits for frames that are on the virtual bus but not yet taken by
+the node's receive thread (``RX_CATCH_UP_S`` at most): a drive has them at once. With the host as SYNC producer the plant runs
 as many 8 kHz ticks per SYNC as the SYNC timestamps say elapsed
 (``sync_clock="timestamps"``, like a drive whose clock follows SYNC), or the
 nominal cycle 0x60C2 (``sync_clock="nominal"``).
@@ -63,6 +77,15 @@ logger = logging.getLogger(__name__)
 
 ABORT_VALUE_RANGE = 0x06090030
 ABORT_DEVICE_STATE = 0x08000022
+SYNC_COB_ID = 0x080
+#: 0x1005 bit 30: this node produces SYNC
+SYNC_PRODUCER_BIT = 1 << 30
+#: a simulated clock later than this fraction of a cycle slips instead of bursting the missed cycles
+SLIP_AFTER = 0.5
+#: longest the simulated clock waits for frames its own receive thread has not taken yet [s]
+RX_CATCH_UP_S = 0.02
+#: COB-ID of the other nodes' traffic the ``bus_load`` option puts on the bus (not a CiA 301 service)
+BACKGROUND_COB_ID = 0x7F0
 #: Bytes per trace/waveform sample on the bus (INT32).
 SAMPLE_BYTES = 4
 #: Torque unit of the waveform and the trace, as a fraction of the rated torque (drivers/sim:
@@ -271,7 +294,14 @@ class CanopenSlave:
     :param channel: python-can channel (``vcan0``, or a name for the ``virtual`` interface).
     :param interface: python-can interface (``virtual``, ``socketcan``, …).
     :param pace: waveform playback speed as a multiple of real time; None: as fast as possible.
-    :param sync_clock: cyclic mode: ticks per SYNC from the SYNC timestamps or the nominal 0x60C2.
+    :param sync_clock: cyclic mode with the host's SYNC: ticks per SYNC from the SYNC timestamps or
+        the nominal 0x60C2.
+    :param frame_loss: probability that a cyclic frame (SYNC, TPDO out; RPDO in) is lost.
+    :param bus_load: other nodes' traffic as a fraction of ``bitrate_bps`` (8-byte frames).
+    :param bitrate_bps: the bus bit rate the ``bus_load`` is a fraction of.
+    :param identity: (vendor id, product code, device name) to report in 0x1018 / 0x1008 instead
+        of the simulated drive's own: a drive of another family.
+    :param seed: seed of the frame-loss draws.
     :param eds: object dictionary (default ``drivers/sim/sim.eds``).
     :param bus_options: more keyword arguments for ``can.Bus`` (e.g. bitrate).
     """
@@ -287,9 +317,16 @@ class CanopenSlave:
         interface: str = "virtual",
         pace: float | None = None,
         sync_clock: Literal["timestamps", "nominal"] = "timestamps",
+        frame_loss: float = 0.0,
+        bus_load: float = 0.0,
+        bitrate_bps: int = 1_000_000,
+        identity: tuple[int, int, str] | None = None,
+        seed: int = 0,
         eds: str | Path | None = None,
         **bus_options: Any,
     ) -> None:
+        if not 0.0 <= frame_loss < 1.0 or not 0.0 <= bus_load < 1.0:
+            raise ValueError("frame_loss and bus_load must be in [0, 1)")
         if not 1 <= node_id <= 127:
             raise ValueError("node id must be 1..127")
         self.device = device if device is not None else SimulatedDevice()
@@ -318,6 +355,23 @@ class CanopenSlave:
         self._first_sync: float | None = None
         self._ticks_done = 0
         self.sync_errors = 0
+        self.frame_loss = float(frame_loss)
+        self.bus_load = float(bus_load)
+        self.bitrate_bps = int(bitrate_bps)
+        self.identity = identity
+        self._loss_rng = np.random.default_rng(seed)
+        # the drive's own clock (SYNC producer)
+        self._clock: threading.Thread | None = None
+        self._clock_stop = threading.Event()
+        self._background: threading.Thread | None = None
+        self._rpdo_fresh = False
+        #: cycles the drive produced, cycles whose setpoint arrived too late (the previous one held),
+        #: frames dropped by ``frame_loss``, and slips of the simulated clock (for tests and the bench)
+        self.cycles_produced = 0
+        self.held_cycles = 0
+        self.frames_dropped = 0
+        self.clock_slips = 0
+        self.clock_lag_max_s = 0.0
         # heartbeat consumer 0x1016: the host's heartbeat, watched by the drive itself
         self._consumer: tuple[int, float] | None = None  # (host node id, timeout s)
         self._host_last: float | None = None
@@ -351,6 +405,11 @@ class CanopenSlave:
         self._store(0x1018, 4, serial)
         self._store(0x6072, 0, int(dev.max_torque_nm / dev.rated_torque_nm * 1000))
         self._store(0x6080, 0, int(dev.max_speed_rad_s * 60 / (2 * math.pi)))
+        if self.identity is not None:
+            vendor_id, product_code, name = self.identity
+            self._store(0x1018, 1, int(vendor_id))
+            self._store(0x1018, 2, int(product_code))
+            self._store(0x1008, 0, str(name))
 
     def _install_callbacks(self) -> None:
         self.node.add_read_callback(self._on_read)
@@ -365,12 +424,19 @@ class CanopenSlave:
         self.network.subscribe(0x80, self._on_sync)
         self.node.nmt.send_command(0x81)  # INITIALISING: boot-up message
         self.node.nmt.send_command(0x80)  # PRE-OPERATIONAL: heartbeat starts (0x1017)
+        if self.bus_load > 0:
+            self._background = threading.Thread(target=self._other_nodes, name=f"sim-drive-{self.node_id}-load",
+                                                daemon=True)
+            self._background.start()
         return self
 
     def close(self) -> None:
         """Stop playing, stop the heartbeat and leave the bus. Safe to call twice."""
         self._stop.set()
         self._closing.set()
+        self._stop_clock()
+        if self._background is not None:
+            self._background.join(timeout=1)
         if self._watchdog is not None:
             self._watchdog.join(timeout=1)
         if self._player is not None:
@@ -391,6 +457,7 @@ class CanopenSlave:
         self.node.sdo.muted = True
         self.node.nmt.stop_heartbeat()
         self._tpdos = []
+        self._stop_clock(join=False)  # may run under the lock (a fault seen by the clock itself)
 
     def stall_sdo(self, index: int) -> None:
         """Requests for ``index`` are never answered (heartbeat and other objects continue)."""
@@ -464,6 +531,8 @@ class CanopenSlave:
                     self._apply_limits()
             elif index == 0x1016:
                 self._configure_consumer(int(value))
+            elif index in (0x1005, 0x1006, 0x1019):
+                self._on_sync_config(index, int(value))
             elif index == 0x2000:
                 dev.velocity_kp = float(value)
             elif index == 0x2001:
@@ -500,6 +569,11 @@ class CanopenSlave:
 
     def _watch_host(self) -> None:
         while not self._closing.wait(0.02):
+            consumer, last = self._consumer, self._host_last
+            if consumer is None or last is None or time.monotonic() - last <= consumer[1]:
+                continue
+            # this process may not have been scheduled: let its receive thread take what is queued first
+            self._closing.wait(0.1)
             consumer, last = self._consumer, self._host_last
             if consumer is None or last is None or time.monotonic() - last <= consumer[1]:
                 continue
@@ -671,14 +745,26 @@ class CanopenSlave:
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         layout = self._rpdos.get(can_id)
-        if not layout or self.node.sdo.muted:
+        if not layout or self.node.sdo.muted or self._lost():
             return
         values = layout[0][2].unpack_from(bytes(data).ljust(layout[0][2].size, b"\0"))
         with self._lock:
             for (index, subindex, _), value in zip(layout, values):
                 self._pending[(index, subindex)] = value
+            self._rpdo_fresh = True
+
+    def _lost(self) -> bool:
+        """One draw of ``frame_loss``: True if this frame is lost on the bus."""
+        if self.frame_loss <= 0 or self._loss_rng.random() >= self.frame_loss:
+            return False
+        self.frames_dropped += 1
+        return True
 
     def _cycle_ticks(self) -> int:
+        """Drive ticks per communication cycle: 0x1006 when set (SYNC producer), else 0x60C2."""
+        period_us = self._raw(0x1006, 0) if 0x1006 in self.node.object_dictionary else 0
+        if period_us:
+            return max(1, int(round(period_us * 1e-6 * self.device.sample_rate_hz)))
         try:
             value, exponent = self._raw(0x60C2, 1), self._raw(0x60C2, 2)
         except (SdoAbortedError, KeyError):
@@ -686,8 +772,8 @@ class CanopenSlave:
         return max(1, int(round(value * 10.0**exponent * self.device.sample_rate_hz)))
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        if not self._tpdos or self.node.sdo.muted:
-            return
+        if not self._tpdos or self.node.sdo.muted or self._clock is not None:
+            return  # a SYNC producer ignores other SYNCs
         try:
             self._sync(timestamp)
         except Exception:  # an exception here would be swallowed by the notifier: count it
@@ -695,6 +781,7 @@ class CanopenSlave:
             logger.exception("sim drive: error on SYNC")
 
     def _sync(self, timestamp: float) -> None:
+        """A SYNC from the host: the plant runs to the tick it falls on (timestamps) or one nominal cycle."""
         dev = self.device
         with self._lock:
             if self._first_sync is None:
@@ -705,29 +792,136 @@ class CanopenSlave:
             else:
                 at_tick = self._sync_count * self._cycle_ticks()
             ticks = max(1, at_tick - self._ticks_done + 1)
-            self._ticks_done += ticks
-            self.sync_ticks.append(self._ticks_done - 1)
-            command = self._pending.pop((0x6040, 0), None)
-            if command is not None:
-                dev.write_controlword(int(command))
-            target = self._pending.get((0x6071, 0), 0)
-            new_torque = float(target) / 1000 * dev.rated_torque_nm
-            if dev.state is State.OPERATION_ENABLED and dev.mode is Mode.CYCLIC_SYNC_TORQUE:
-                refs = np.full(ticks, self._applied_torque_nm)
-                refs[-1] = new_torque
-                dev.step_cyclic(refs)
-                self._applied_torque_nm = new_torque if dev.state is State.OPERATION_ENABLED else 0.0
-            else:
-                self._applied_torque_nm = 0.0
-            self._check_fault()
-            self._sync_count += 1
-            frames = []
-            for cob, trans, entries, st in self._tpdos:
-                if self._sync_count % trans == 0:
-                    frames.append((cob, st.pack(*(self._pdo_value(i, s) for i, s in entries))))
+            frames = self._cycle(ticks)
+        self._send_cyclic(frames)
+
+    def _cycle(self, ticks: int) -> list[tuple[int, bytes]]:
+        """One communication cycle boundary (lock held): apply the setpoint that arrived in time, run
+        the plant ``ticks`` ticks to this boundary, latch; returns the TPDO frames to send."""
+        dev = self.device
+        self._ticks_done += ticks
+        self.sync_ticks.append(self._ticks_done - 1)
+        if not self._rpdo_fresh and self._sync_count > 0:
+            self.held_cycles += 1
+        self._rpdo_fresh = False
+        command = self._pending.pop((0x6040, 0), None)
+        if command is not None:
+            dev.write_controlword(int(command))
+        target = self._pending.get((0x6071, 0), 0)
+        new_torque = float(target) / 1000 * dev.rated_torque_nm
+        if dev.state is State.OPERATION_ENABLED and dev.mode is Mode.CYCLIC_SYNC_TORQUE:
+            refs = np.full(ticks, self._applied_torque_nm)
+            refs[-1] = new_torque
+            dev.step_cyclic(refs)
+            self._applied_torque_nm = new_torque if dev.state is State.OPERATION_ENABLED else 0.0
+        else:
+            self._applied_torque_nm = 0.0
+        self._check_fault()
+        self._sync_count += 1
+        frames = []
+        for cob, trans, entries, st in self._tpdos:
+            if self._sync_count % trans == 0:
+                frames.append((cob, st.pack(*(self._pdo_value(i, s) for i, s in entries))))
+        return frames
+
+    def _send_cyclic(self, frames: list[tuple[int, bytes]]) -> None:
         for cob, payload in frames:
-            if not self.node.sdo.muted:
+            if not self.node.sdo.muted and not self._lost():
                 self.network.send_message(cob, payload)
+
+    # -- the drive's own clock: SYNC producer (0x1005 bit 30) -----------------------------------------
+    def _on_sync_config(self, index: int, value: int) -> None:
+        """0x1005 / 0x1006 / 0x1019 written (lock held): start or stop the SYNC producer."""
+        if index == 0x1019 and self._raw(0x1006, 0) != 0:
+            raise SdoAbortedError(ABORT_DEVICE_STATE)  # CiA 301: only while the cycle period is 0
+        if index == 0x1005 and value & 0x7FF != SYNC_COB_ID:
+            raise SdoAbortedError(ABORT_VALUE_RANGE)
+        self._store(index, 0, value)  # before the clock thread reads it (LocalNode stores after this call)
+        if self._raw(0x1005, 0) & SYNC_PRODUCER_BIT and self._raw(0x1006, 0) > 0:
+            self._start_clock()
+        else:
+            self._clock_stop.set()  # the thread ends before its next cycle
+
+    def _start_clock(self) -> None:
+        if self._clock is not None and self._clock.is_alive() and not self._clock_stop.is_set():
+            return
+        # a stopped clock thread ends by itself at its next cycle (it checks its own event under the
+        # lock, which the caller holds): joining it here would wait for that lock
+        self._clock_stop = threading.Event()
+        self._clock = threading.Thread(target=self._produce, args=(self._clock_stop,),
+                                       name=f"sim-drive-{self.node_id}-clock", daemon=True)
+        self._clock.start()
+
+    def _stop_clock(self, join: bool = True) -> None:
+        """Stop producing SYNC; ``join`` waits for the thread (never while holding the lock)."""
+        self._clock_stop.set()
+        clock = self._clock
+        if join and clock is not None and clock is not threading.current_thread():
+            clock.join(timeout=1)
+        self._clock = None
+
+    def _produce(self, stop: threading.Event) -> None:
+        """SYNC, then the TPDOs, every cycle on the drive's clock; the plant runs one cycle per SYNC."""
+        with self._lock:
+            ticks = self._cycle_ticks()
+            overflow = self._raw(0x1019, 0) if 0x1019 in self.node.object_dictionary else 0
+            self._sync_count = 0
+            self._ticks_done = 0
+            self.sync_ticks = []
+        period = ticks / self.device.sample_rate_hz
+        counter = 0
+        due = time.perf_counter()
+        first = True
+        while not stop.is_set():
+            now = time.perf_counter()
+            if now < due:
+                time.sleep(due - now)
+                continue
+            if self._receiving(until=now + RX_CATCH_UP_S):
+                continue  # frames wait in this process, not on the bus: a drive would have them already
+            lag = now - due
+            self.clock_lag_max_s = max(self.clock_lag_max_s, lag)
+            if lag > SLIP_AFTER * period:
+                self.clock_slips += 1
+                due = now
+            try:
+                with self._lock:
+                    if stop.is_set():
+                        break
+                    frames = self._cycle(1 if first else ticks)
+                    self.cycles_produced += 1
+                first = False
+                counter = counter % overflow + 1 if overflow >= 2 else 0
+                if not self.node.sdo.muted and not self._lost():
+                    self.network.send_message(SYNC_COB_ID, bytes([counter]) if overflow >= 2 else b"")
+                self._send_cyclic(frames)
+            except Exception:  # a thread's exception would be lost: count it, stop producing
+                self.sync_errors += 1
+                logger.exception("sim drive: error in the SYNC producer")
+                return
+            due += period
+
+    def _receiving(self, until: float) -> bool:
+        """True while frames that reached this node's bus wait for its receive thread (and until
+        ``until``): the simulation, not the bus, is behind, so its clock waits for them (a drive's
+        controller has a frame the moment it is on the bus)."""
+        queue = getattr(self.network.bus, "queue", None)  # python-can's virtual bus
+        if queue is None or queue.qsize() == 0 or time.perf_counter() > until:
+            return False
+        time.sleep(0.0001)
+        return True
+
+    def _other_nodes(self) -> None:
+        """Other nodes' traffic: 8-byte frames at ``bus_load`` of the bit rate, in 1 ms bursts."""
+        from commission.drive.canopen.pdo import frame_bits
+
+        per_s = self.bus_load * self.bitrate_bps / frame_bits(8)
+        sent, t0 = 0, time.perf_counter()
+        while not self._closing.wait(0.001):
+            due = int((time.perf_counter() - t0) * per_s)
+            while sent < due and self.network.bus is not None:
+                self.network.send_message(BACKGROUND_COB_ID, sent.to_bytes(8, "little"))
+                sent += 1
 
     def _pdo_value(self, index: int, subindex: int) -> int:
         value = self._on_read(index, subindex, self._od(index, subindex))

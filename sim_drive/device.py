@@ -70,6 +70,13 @@ class InjectedFault(Enum):
     DRIVE_FAULT = "drive"
     ENCODER_FAULT = "encoder"
     COMMUNICATION_LOSS = "communication"
+    SOFTWARE_ERROR = "exception"
+    """A bug: :meth:`SimulatedDevice.advance` raises :class:`InjectedError` with the drive still
+    enabled and its player armed, as an unexpected exception from a backend would."""
+
+
+class InjectedError(RuntimeError):
+    """The exception of :attr:`InjectedFault.SOFTWARE_ERROR`."""
 
 
 @dataclass(frozen=True)
@@ -384,6 +391,8 @@ class SimulatedDevice:
 
     def _trigger(self, kind: InjectedFault) -> None:
         self._pending.pop(kind, None)
+        if kind is InjectedFault.SOFTWARE_ERROR:
+            raise InjectedError(f"injected software error at sample {self._played}")
         if kind is InjectedFault.COMMUNICATION_LOSS:
             self.communication_lost = True
             self._enter_fault(ErrorCode.COMMUNICATION)

@@ -23,9 +23,14 @@ pulled (the pty closed) when playback reaches a sample.
 
 Line rate: a pty moves bytes as fast as the kernel copies them, whatever baud
 rate the host sets. With ``line_rate_bps`` the device end paces both
-directions to that many bit/s at 10 bits per byte (8N1), one direction at a
-time (half duplex, as RS-485 Modbus), so times measured on the pty model a
-real line. Without it (default), times are the pty's.
+directions to that many bit/s at 10 bits per byte (8N1), so times measured on
+the pty model a real line: one direction at a time for Modbus (half duplex, as
+RS-485), both at once for the slcan adapter (a UART). An slcan adapter whose
+line cannot keep up with the bus drops frames, as a real one's transmit FIFO
+overruns: a frame that waited longer than ``SlcanAdapter.FIFO_LINES`` lines take
+on the line is dropped (counted in ``overruns``, reported by ``F``); a USB adapter
+(no line rate) drops what waited longer than ``SlcanAdapter.FIFO_AGE_S`` for the host.
+Without a line rate (default: a USB adapter), times are the pty's.
 """
 
 from __future__ import annotations
@@ -114,9 +119,13 @@ class PtyLink:
     next read or write fails.
 
     :param line_rate_bps: pace both directions to this bit rate (8N1), or None for pty speed.
+    :param full_duplex: the two directions do not share the line (a UART; RS-485 does).
     """
 
-    def __init__(self, line_rate_bps: float | None = None) -> None:
+    #: bytes may reach the host up to this early: pacing sleeps in steps of at least this long [s]
+    PACE_SLACK_S = 0.001
+
+    def __init__(self, line_rate_bps: float | None = None, full_duplex: bool = False) -> None:
         self.master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no echo, no CR/LF translation before the host configures it
         self.path = os.ttyname(self._slave)
@@ -125,16 +134,27 @@ class PtyLink:
         self.bytes_out = 0
         self.closed = False
         self._write_lock = threading.Lock()
-        self._line_free_at = 0.0  # half duplex: when the line is next free
+        self.full_duplex = full_duplex
+        self._free_at = {"in": 0.0, "out": 0.0}  # when each direction's line is next free
 
-    def _occupy(self, n_bytes: int) -> None:
+    def _direction(self, direction: str) -> str:
+        return direction if self.full_duplex else "in"
+
+    def backlog_s(self, direction: str = "out") -> float:
+        """Seconds of bytes still queued for the line in ``direction`` (0 without a line rate)."""
+        if not self.line_rate_bps:
+            return 0.0
+        return max(0.0, self._free_at[self._direction(direction)] - time.perf_counter())
+
+    def _occupy(self, n_bytes: int, direction: str = "in") -> None:
         if not self.line_rate_bps:
             return
+        key = self._direction(direction)
         now = time.perf_counter()
-        start = max(now, self._line_free_at)
-        self._line_free_at = start + n_bytes * BITS_PER_BYTE / self.line_rate_bps
-        delay = self._line_free_at - now
-        if delay > 0:
+        start = max(now, self._free_at[key])
+        self._free_at[key] = start + n_bytes * BITS_PER_BYTE / self.line_rate_bps
+        delay = self._free_at[key] - now
+        if delay > self.PACE_SLACK_S:
             time.sleep(delay)
 
     def read(self, timeout_s: float) -> bytes | None:
@@ -151,7 +171,7 @@ class PtyLink:
                 return None
             raise
         self.bytes_in += len(data)
-        self._occupy(len(data))
+        self._occupy(len(data), "in")
         return data
 
     def write(self, data: bytes) -> bool:
@@ -159,7 +179,7 @@ class PtyLink:
         with self._write_lock:
             if self.closed:
                 return False
-            self._occupy(len(data))
+            self._occupy(len(data), "out")
             view = memoryview(data)
             try:
                 while view:
@@ -239,10 +259,17 @@ class SlcanAdapter:
     :param pace: waveform playback speed as a multiple of real time; None: as fast as possible.
     :param faults: injected link faults (:func:`parse_fault`).
     :param line_rate_bps: model a UART at this bit rate (a USB CDC adapter has none: default None).
+    :param node_options: more options of the CANopen node behind the adapter
+        (:class:`~sim_drive.canopen_slave.CanopenSlave`: ``frame_loss``, ``bus_load``, ``identity``, …).
     """
 
     VERSION = "V1013"  # hardware 10, software 13, as python-can's get_version() parses it
     SERIAL = "NSIM1"
+    #: frame lines the adapter's transmit FIFO holds while its UART is busy; more are dropped (overrun)
+    FIFO_LINES = 32
+    #: without a UART (USB): a frame the host has not taken within this long is dropped, as the
+    #: adapter's FIFO would overflow rather than delay the bus without bound [s]
+    FIFO_AGE_S = 0.5
 
     def __init__(
         self,
@@ -252,14 +279,18 @@ class SlcanAdapter:
         pace: float | None = None,
         faults: tuple[LinkFault, ...] = (),
         line_rate_bps: float | None = None,
+        node_options: dict[str, Any] | None = None,
     ) -> None:
         self.device = device if device is not None else SimulatedDevice()
         self.node_id = node_id
         self.faults = tuple(faults)
-        self.link = PtyLink(line_rate_bps)
+        self.link = PtyLink(line_rate_bps, full_duplex=True)
         self.path = self.link.path
         self.channel = f"slcan-sim-{os.getpid()}-{id(self):x}"
-        self.node = CanopenSlave(self.device, node_id=node_id, channel=self.channel, interface="virtual", pace=pace)
+        self.node = CanopenSlave(self.device, node_id=node_id, channel=self.channel, interface="virtual", pace=pace,
+                                 **(node_options or {}))
+        #: frames dropped because the line to the host could not keep up (transmit FIFO overrun)
+        self.overruns = 0
         self.bus: can.BusABC | None = None
         self.is_open = False
         self.bitrate: int | None = None
@@ -354,8 +385,8 @@ class SlcanAdapter:
             return self.VERSION.encode() + OK
         if c == "N":
             return self.SERIAL.encode() + OK
-        if c == "F":
-            return b"F00\r"
+        if c == "F":  # status flags: bit 3 data overrun
+            return b"F08\r" if self.overruns else b"F00\r"
         if c == "Z":
             return OK
         return BELL
@@ -369,6 +400,11 @@ class SlcanAdapter:
             if msg is None or not self.is_open or self.muted:
                 continue
             line = slcan_line(msg)
+            rate = self.link.line_rate_bps
+            fifo_s = self.FIFO_LINES * len(line) * BITS_PER_BYTE / rate if rate else self.FIFO_AGE_S
+            if time.time() - msg.timestamp > fifo_s:
+                self.overruns += 1  # it waited longer than the FIFO holds: on an adapter it was overwritten
+                continue
             if msg.arbitration_id == 0x580 + self.node_id and not msg.is_extended_id:
                 self.sdo_responses += 1
                 line = self._inject(line, self.sdo_responses)

@@ -19,6 +19,8 @@ from sim_drive.canopen_slave import CanopenSlave
 from sim_drive.device import InjectedFault, SimulatedDevice
 from sim_drive.plant import Plant, PlantParameters
 
+from busy_host import cpu_hog  # noqa: F401 - a fixture
+
 STEP = 2 * math.pi / 2**24  # rad per increment of the simulated 24-bit encoders
 _channels = itertools.count()
 
@@ -66,31 +68,45 @@ def test_full_run_over_canopen_equals_the_direct_simulation(tmp_path):
     assert a.epsilon_rad == pytest.approx(b.epsilon_rad, abs=math.radians(0.002))
 
 
-def test_streamed_fallback_runs_at_the_budgeted_rate_with_real_sample_times(tmp_path):
-    """A drive without a trace buffer (generic CiA 402 objects): SYNC + RPDO + TPDOs at 2 kHz."""
+def test_streamed_fallback_records_what_the_drive_applied_on_its_own_clock(tmp_path, cpu_hog):
+    """A drive without a trace buffer (generic CiA 402 objects), a CPU-bound process beside the run:
+    the record is on the drive's cycle grid and is exactly what the plant did with the torque the
+    drive says it applied, however late the host's setpoints were."""
     drive = sim_canopen(drive="generic-cia402", plant={"seed": 1})
     with drive:
         assert drive.budget is not None and drive.budget.rate_hz == pytest.approx(2000)
-        assert drive.budget.usable_band_hz == pytest.approx(400)
+        assert drive.budget.usable_band_hz == pytest.approx(400) and drive.budget.frames_per_cycle == 3
         outcome = Sequencer(short_config(), drive, tmp_path).run()
         report = drive.stream_report
-        ticks = np.asarray(drive.simulator.sync_ticks, dtype=np.float64)
         assert drive.simulator.sync_errors == 0
     rec = read_recording(tmp_path / "run.mcap")
-    assert len(rec) == 2000 and rec.sample_rate_hz == pytest.approx(2000)
-    assert rec.metadata["status"] == "complete" and "jitter" in rec.metadata["stream"]
-    assert report is not None and report.cycles == 2000
-    # a loaded CI machine may fall behind the 2 kHz schedule; the report says by how much
-    assert report.achieved_rate_hz > 0.25 * report.planned_rate_hz
-    assert report.jitter_rms_s >= 0 and report.jitter_max_s >= report.jitter_rms_s
-    # the recorded times are the real ones: the drive latched at the tick its SYNC arrived
-    truth = (ticks[: len(rec)] - ticks[0]) / 8000
-    err = rec.t - truth
-    assert np.sqrt(np.mean(err**2)) < 300e-6 and np.max(np.abs(err)) < 3e-3
-    # the torque is 0x6071's per mille of rated, held per cycle
-    assert np.all(np.abs(rec.torque_ref / 0.637 * 1000 - np.round(rec.torque_ref / 0.637 * 1000)) < 1e-9)
-    picks = np.floor(np.arange(2000) * 4).astype(int)
-    np.testing.assert_allclose(rec.torque_ref, np.round(outcome.waveform.samples[picks] / 0.637 * 1000) * 0.637e-3)
+    assert rec.sample_rate_hz == pytest.approx(2000) and rec.is_uniform and rec.metadata["status"] == "complete"
+    # the setpoints played in order; a late one paused the excitation (the drive held the last)
+    assert report is not None and report.targets == 2000 and len(rec) == report.cycles == 2000 + report.pause_cycles
+    assert report.lost_cycles == 0 and not rec.lost_mask.any() and "paused by late setpoints" in rec.metadata["stream"]
+    permille = rec.torque_ref / 0.637 * 1000
+    assert np.all(np.abs(permille - np.round(permille)) < 1e-9)
+    targets = np.concatenate(([0.0], np.round(outcome.waveform.samples[::4] / 0.637 * 1000)))
+    # the applied values, each run of equal ones taken once, follow the targets (likewise): a pause
+    # repeats a value, a skipped setpoint (two answers reached the drive within one cycle) is one step of
+    # the chirp left out, and only where the host caught up with the clock after a long stall may it jump
+    def changes(x: np.ndarray) -> np.ndarray:
+        return x[np.concatenate(([True], x[1:] != x[:-1]))]
+
+    wanted, played = changes(targets), changes(np.round(permille))
+    at, skips, jumps = 0, 0, 0
+    for value in played:
+        ahead = np.flatnonzero(wanted[at:] == value)
+        assert ahead.size, f"setpoint {value} out of order"
+        skips += 1 < ahead[0] <= 3
+        jumps += ahead[0] > 3
+        at += int(ahead[0])
+    # (single-step skips are benign: a few per cent on an idle host, more on a loaded one)
+    assert at >= wanted.size - 2 and skips < 0.25 * wanted.size and jumps <= report.catch_ups
+    # independent check: the plant, fed that torque held per cycle from rest, lands on every recorded position
+    exact = Plant(PlantParameters(seed=1)).run_torque(np.concatenate((np.zeros(4), np.repeat(rec.torque_ref, 4))))
+    np.testing.assert_array_equal(rec.motor_position, exact.motor_position[4::4])
+    np.testing.assert_allclose(rec.motor_velocity, np.diff(exact.motor_position[::4]) * 2000, rtol=0, atol=1e-9)
     assert np.max(np.abs(rec.motor_velocity)) > 1.0
 
 
@@ -101,7 +117,7 @@ def test_streamed_fallback_refuses_a_band_the_bus_cannot_carry():
     assert device.samples_run == 0
     with sim_canopen(drive="generic-cia402", band_hz=500, allow_narrow_band=True) as drive:
         assert drive.budget.usable_band_hz == pytest.approx(400)
-    with pytest.raises(ConfigError, match="usable band 200 Hz"):
+    with pytest.raises(ConfigError, match=r"1333 Hz cycle.*usable band 267 Hz"):
         sim_canopen(drive="generic-cia402", bitrate=500_000, band_hz=400)
 
 
@@ -217,8 +233,9 @@ def test_velocity_mode_backlash_check_over_canopen(tmp_path):
 
 
 def test_vendor_parameters_are_range_checked_before_anything_is_sent():
-    # the Yaskawa description against the simulated node: standard objects work, the Pn map is the vendor's
-    with sim_canopen(drive="yaskawa-sigma7") as drive:
+    # the Yaskawa description against the simulated node posing as one (its 0x1018): standard objects
+    # work, the Pn map is the vendor's
+    with sim_canopen(drive="yaskawa-sigma7", link={"identity": (0x539, 0x2200001, "SGD7S")}) as drive:
         assert drive.method.value == "streamed" and drive.budget.rate_hz == pytest.approx(2000)
         with pytest.raises(DriveError, match=r"speed_loop_gain = 5000 Hz is raw 50000, outside 10\.\.20000"):
             drive.write_parameter("speed_loop_gain", 5000.0)

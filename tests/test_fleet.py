@@ -80,7 +80,7 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     whole = (root / "line1/ax1-jan.mcap").read_bytes()
     (root / "line1/cut.mcap").write_bytes(whole[:2000])  # cut inside the first chunk: nothing to recover
     (root / "line2/notes.csv").write_text("axis 3 was serviced on Tuesday\n")
-    _simulate(root / "line2/ax3-short.mcap", 0.3, serial="AX-3", samples=1600)  # 0.2 s: under 1/resolution
+    _simulate(root / "line2/ax3-short.mcap", 0.3, serial="AX-3", samples=200)  # 25 ms: the chirp has not reached a resonance
     return root
 
 

@@ -174,9 +174,9 @@ def test_quality_drops_with_backlash() -> None:
 
 
 def test_a_raised_band_is_the_full_frd_from_its_edge() -> None:
-    # the hybrid start fits raised low band edges by slicing one FRD (hybrid._bins) instead of
+    # the hybrid start fits raised low band edges by slicing one FRD (start._bins) instead of
     # estimating each band again: every field must be the same, bin for bin (quality included)
-    from commission.ident.hybrid import _bins
+    from commission.ident.start import _bins
 
     tq = chirp_torque()
     v = sampled_velocity(REFERENCE_PLANT, tq) + np.random.default_rng(2).normal(0.0, 1e-3, tq.size)

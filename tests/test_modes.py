@@ -156,13 +156,14 @@ def test_sim_over_canopen(quick_sim_run: CliRun, tmp_path: Path) -> None:
 
 def test_streamed_fallback(tmp_path: Path) -> None:
     """`--sim --sim-link canopen --drive generic-cia402`: no trace buffer, so SYNC + PDO streaming at the
-    rate the bus budget allows (2 kHz at 1 Mbit/s), with the real sample times recorded. Not identified
-    here: on a busy host a stream can lose more cycles than the identifier accepts, which it says."""
+    rate the bus budget allows (2 kHz at 1 Mbit/s), on the drive's clock. Not identified here (the
+    streamed path's own tests identify): a late host pauses the excitation, up to 50 ms in a run."""
     run = run_cli("--sim", "--sim-link", "canopen", "--drive", "generic-cia402", "--config", "quick",
                   "--no-identify", "--json", out=tmp_path)
     assert run.code == 0, run.stderr
     rec = read_recording(tmp_path / "run.mcap")
-    assert run.doc["recording"]["status"] == "complete" and len(rec) == 4000  # 2 s at 2 kHz
+    # 2 s at 2 kHz, and the cycles a late host paused the excitation for (at most 50 ms)
+    assert run.doc["recording"]["status"] == "complete" and 4000 <= len(rec) <= 4100
     assert rec.sample_rate_hz == pytest.approx(2000) and "jitter" in rec.metadata["stream"]
 
 

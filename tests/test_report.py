@@ -318,7 +318,7 @@ def test_report_shows_the_search_history(run, tmp_path: Path) -> None:
     out, log, recording, config, ident = run
     history = [{"epsilon_deg": e, "phi": p, "omega_scale": 1.0, "cost_nm": 1e-3 + abs(e - 0.4) * (1 + p)}
                for p in (0.2, 0.5, 0.8) for e in np.linspace(0.0, 1.0, 21)]
-    stages = [dataclasses.replace(s, detail={**s.detail, "history": history}) if s.name == "search" else s
+    stages = [dataclasses.replace(s, detail={**s.detail, "history": history}) if s.name == "scan" else s
               for s in ident.stages]
     ident_h = dataclasses.replace(ident, stages=stages)
     assert len(search_history(ident_h)) == len(history)

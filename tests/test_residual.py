@@ -234,7 +234,8 @@ def test_contact_steps_are_exact_on_a_stiff_light_load():
     c, Ts = p.spline, 1.0 / FS
     kj, dj, bj = (plant[k] / plant["J_l"] for k in ("K", "D", "B_l"))
     I0, I1, *_ = _simulate_load(c, Ts, 1.0, bj, kj, dj, 0.0, sim.load_position[0], 0.0, 0.0, 1.0,
-                                contact_map(Ts, kj, dj, bj), False)
+                                contact_map(Ts, kj, dj, bj), False, np.zeros(c.shape[0] - 1), 0.0,
+                                np.array([1.0, 0.0, 0.0, 0.0, 0.0]), np.zeros(0), 0.0)
     q = [sim.load_position[0], 0.0]
     xs, vs, i0s, i1s = [q[0]], [q[1]], [], []
     for k in range(c.shape[0]):
@@ -276,8 +277,9 @@ def test_contact_steps_with_saturated_load_friction_are_exact():
     c, Ts = p.spline, 1.0 / FS
     kj, dj, bj = (plant[k] / plant["J_l"] for k in ("K", "D", "B_l"))
     cj, vs = 0.01 / plant["J_l"], 1e-3
-    I0, I1, xl, vl, _ = _simulate_load(c, Ts, 1.0, bj, kj, dj, 0.0, 0.0, 0.0, cj, 1.0 / vs,
-                                       contact_map(Ts, kj, dj, bj), True)
+    I0, I1, xl, vl, *_ = _simulate_load(c, Ts, 1.0, bj, kj, dj, 0.0, 0.0, 0.0, cj, 1.0 / vs,
+                                        contact_map(Ts, kj, dj, bj), True, np.zeros(c.shape[0] - 1), 0.0,
+                                        np.array([1.0, 0.0, 0.0, 0.0, 0.0]), np.zeros(0), 0.0)
     saturated = np.flatnonzero((np.abs(vl[:-1]) > _SATURATED * vs) & (np.abs(vl[1:]) > _SATURATED * vs)
                                & (np.sign(vl[:-1]) == np.sign(vl[1:])))
     assert saturated.size > 0.5 * c.shape[0]  # most of the record: the check covers the common case
@@ -315,29 +317,11 @@ def test_load_simulation_is_continuous_in_the_load_friction_down_to_zero(problem
     assert 0 < np.max(np.abs(none - at0)) < 1e-5 * np.max(np.abs(at0))
 
 
-def test_the_predictor_residual_without_gain_is_the_plain_residual(problem):
-    # two simulations written apart (fixed-step RK4 on the exact dead zone against the event-located
-    # one with the exact contact map): with the gain 0 the predictor is the plain residual
-    from commission.ident.residual import predictor_residual, residual_vector
-
-    eps = math.radians(0.40)
-    plain = residual_vector(problem, **TRUE, epsilon_rad=eps)
-    pred = predictor_residual(problem, **TRUE, epsilon_rad=eps, gain=0.0)
-    ref = float(np.sqrt(np.mean(problem.torque_f ** 2)))
-    assert pred.shape == plain.shape
-    # apart by less than a third of the noise floor (3e-4 of τ_ref): the fixed step's error
-    assert float(np.sqrt(np.mean((pred - plain) ** 2))) < 1e-4 * ref
-    # a wrong ε shows in both alike
-    wrong = predictor_residual(problem, **TRUE, epsilon_rad=1.2 * eps, gain=0.0)
-    assert float(np.sqrt(np.mean(wrong ** 2))) > 10 * float(np.sqrt(np.mean(pred ** 2)))
-    assert float(np.sqrt(np.mean(pred ** 2))) < 1e-3 * ref
-
-
-def test_the_predictor_follows_a_load_the_plain_simulation_loses():
-    # 100 Hz, J_l = J_m, ζ 0.05: over its impacts the load re-simulated open loop decorrelates from
-    # the real one and the true parameters leave ~30 % of τ_ref; corrected from the motor equation
-    # after every sample it stays with it (the noise floor, 3e-4), and ε 10 % off still shows
-    from commission.ident.residual import predictor_residual, residual_vector
+def test_the_observer_without_gain_is_the_open_loop_simulation_and_with_it_follows_the_load():
+    # 100 Hz, J_l = J_m, ζ 0.05: over its impacts the load simulated open loop parts from the real
+    # one and the true parameters leave ~30 % of τ_ref; corrected after every sample from its own
+    # residual it stays with it (the noise floor, 3e-4), and ε 10 % off still shows
+    from commission.ident.residual import Observer, residual_vector
 
     J = 4.78e-4
     true = dict(J_m=J, J_l=J, B_m=0.84e-2, B_l=0.53e-2 * math.sqrt(2.5), K=(2 * math.pi * 100) ** 2 * J / 2,
@@ -346,9 +330,12 @@ def test_the_predictor_follows_a_load_the_plain_simulation_loses():
     r = Plant(PlantParameters(**true, epsilon_deg=0.20, torque_noise_nm=1e-4, seed=3), FS).run_torque(tau)
     p = prepare_residual(r.torque_ref, FS, motor_position=r.motor_position, cutoff_hz=400.0)
     ref = float(np.sqrt(np.mean(p.torque_f ** 2)))
-    rms = lambda v: float(np.sqrt(np.mean(v * v))) / ref  # noqa: E731
+    rms = lambda v: float(np.sqrt(np.mean(v[4:-4] ** 2))) / ref  # noqa: E731
     eps = math.radians(0.20)
-    assert rms(residual_vector(p, **true, epsilon_rad=eps)) > 0.1
-    at_truth = rms(predictor_residual(p, **true, epsilon_rad=eps))
+    open_loop = residual_vector(p, **true, epsilon_rad=eps)
+    assert np.array_equal(open_loop, residual_vector(p, **true, epsilon_rad=eps, observer=Observer()))
+    assert rms(open_loop) > 0.1
+    observer = Observer.design(FS, 600.0, 800.0, true["K"], true["D"])
+    at_truth = rms(residual_vector(p, **true, epsilon_rad=eps, observer=observer))
     assert at_truth < 1e-3
-    assert rms(predictor_residual(p, **true, epsilon_rad=0.9 * eps)) > 10 * at_truth
+    assert rms(residual_vector(p, **true, epsilon_rad=0.9 * eps, observer=observer)) > 10 * at_truth

@@ -21,6 +21,8 @@ import pytest
 from commission.cli import main
 from commission.mcaplog import read_recording
 
+from busy_host import cpu_hog  # noqa: F401 - a fixture
+
 SEED = "3"
 STEP = 2 * math.pi / 2**24  # rad per increment of the simulated 24-bit encoders
 
@@ -81,10 +83,29 @@ def assert_same_run(out: Path, direct: Path) -> None:
 
 
 def test_canopen_through_an_slcan_adapter_in_a_second_process(direct, tmp_path, capsys):
+    """No --drive: the description comes from the drive's identity (0x1018: the simulated drive, whose
+    waveform player and trace are then used)."""
     with sim_drive("slcan") as port:
-        doc = run_cli(capsys, "--port", port, "--interface", "slcan", "--drive", "sim", "--out", str(tmp_path))
+        doc = run_cli(capsys, "--port", port, "--interface", "slcan", "--out", str(tmp_path))
     assert doc["source"] == "canopen" and doc["recording"]["status"] == "complete"
     assert_same_run(tmp_path, direct)
+
+
+def test_streamed_through_an_slcan_adapter_beside_a_cpu_hog(direct, tmp_path, capsys, cpu_hog):
+    """A drive no description claims (generic identity) behind an slcan adapter in another process, a
+    CPU-bound process beside both: host-streamed CST on the drive's clock identifies what the direct
+    run identifies (ε ±0.02°, J_m, J_l, K ±2 %)."""
+    with sim_drive("slcan", "--identity", "generic") as port:
+        doc = run_cli(capsys, "--port", port, "--interface", "slcan", "--no-tune", "--out", str(tmp_path))
+    rec = read_recording(tmp_path / "run.mcap")
+    assert len(rec) >= 20_000 and rec.sample_rate_hz == 2000 and rec.is_uniform
+    assert "host-streamed CST on the drive's clock" in rec.metadata["excitation_path"]
+    assert doc["recording"]["drive"]["vendor"] == "vendor 0x00000000"
+    got = json.loads((tmp_path / "result.json").read_text())
+    want = json.loads((direct / "result.json").read_text())
+    for key in ("J_m", "J_l", "K"):
+        assert got["two_mass"][key] == pytest.approx(want["two_mass"][key], rel=0.02), key
+    assert got["backlash"]["epsilon_deg"] == pytest.approx(want["backlash"]["epsilon_deg"], abs=0.02)
 
 
 def test_modbus_rtu_in_a_second_process(direct, tmp_path, capsys):

@@ -22,10 +22,12 @@ from commission.tuning import (
     Notch,
     TuningError,
     TuningOptions,
+    UncertaintySet,
     controller_json,
     design,
     drive_parameters,
     loop_margins,
+    robust_margins,
     velocity_closed_loop,
     verify,
     write_controller_files,
@@ -51,6 +53,9 @@ def _plant(ratio: float, f_r: float, zeta: float, B_l: float | None = None) -> T
 IDENTIFIED = TwoMassParameters(J_m=4.78e-4 * 1.01, J_l=1.92e-4 * 0.98, B_m=0.84e-2 * 1.05, B_l=0.53e-2 * 0.9,
                                K=23.10 * 0.985, D=1.54e-2 * 1.1)
 EPS_ID = math.radians(0.395)
+#: the design of issue #6: an ideal drive, no uncertainty set, no band limit (to test what does not
+#: depend on the drive's loop)
+IDEAL = TuningOptions(ideal_drive=True, uncertainty=UncertaintySet.none(), band_factor=None)
 _cache: dict[str, object] = {}
 
 
@@ -115,10 +120,10 @@ def test_reference_plant_meets_the_margins_on_the_true_plant() -> None:
         assert m.gain_margin_db >= 8.0
     assert v.ready, v.reasons
     assert s.velocity_bandwidth_hz > 100.0
-    # the designed gain is the highest: 15 % more breaks a margin on the identified model
-    hot = replace(s, velocity_gain=1.15 * s.velocity_gain)
-    m = loop_margins(hot, IDENTIFIED)
-    assert m.phase_margin_deg < 45.0 + TuningOptions().design_guard_deg or m.gain_margin_db < 9.0
+    # the designed gain is the highest: 5 % more breaks the worst case over the uncertainty set
+    assert s.robust is not None and s.robust.holds
+    hot = replace(s, velocity_gain=1.05 * s.velocity_gain)
+    assert not robust_margins(hot, IDENTIFIED, TuningOptions(), backlash=True).holds
 
 
 def test_bandwidth_is_not_read_at_a_narrow_notch_inside_the_loop() -> None:
@@ -134,7 +139,7 @@ def test_bandwidth_is_not_read_at_a_narrow_notch_inside_the_loop() -> None:
     # ... and on the identified model of such a plant: the notch (71 Hz) was read as the bandwidth
     p = TwoMassParameters(J_m=4.78e-4, J_l=4.78e-4, B_m=0.84e-2, B_l=0.53e-2 * math.sqrt(2.5),
                           K=(2 * math.pi * 100) ** 2 * 4.78e-4 / 2, D=0.05 * 2 * math.pi * 100 * 4.78e-4)
-    assert design(p, TuningOptions(), epsilon_rad=math.radians(0.2)).velocity_bandwidth_hz > 500.0
+    assert design(p, IDEAL, epsilon_rad=math.radians(0.2)).velocity_bandwidth_hz > 500.0
 
 
 def test_backlash_compensation_reduces_the_load_error_after_reversals() -> None:
@@ -171,7 +176,8 @@ def test_position_step_with_compensation_leaves_the_load_on_target() -> None:
 def test_compensation_holds_for_moves_of_any_size(amplitude: float, move_time: float) -> None:
     """Without the reference filter a load without friction stops anywhere in the gap and
     where depends on the move (the compensation doubles the error on some moves); with it,
-    the lost motion is gone for short and long, slow and fast moves alike."""
+    the lost motion is gone for short and long, slow and fast moves alike (without it, how much
+    is left depends on where the load happens to stop: 6–80 % of 2ε over these moves)."""
     s, _ = _reference()
     opt = TuningOptions(reversal_move_rad=amplitude, reversal_move_time_s=move_time)
     v = verify(s, PlantParameters(), opt, scenarios=("reversal",))
@@ -179,7 +185,7 @@ def test_compensation_holds_for_moves_of_any_size(amplitude: float, move_time: f
     off = v.runs["without_backlash_compensation"]["reversal"]
     assert on.lost_motion_rad < 0.05 * 2 * EPS_ID
     assert on.load_error_rad < 0.05 * EPS_ID
-    assert off.lost_motion_rad > 0.2 * 2 * EPS_ID
+    assert off.lost_motion_rad > 2.0 * on.lost_motion_rad
 
 
 @pytest.mark.parametrize("ratio, f_r, zeta, eps_deg, coulomb", [
@@ -208,15 +214,16 @@ def test_without_the_filter_the_design_still_chooses_what_helps_on_the_model() -
 
 
 def test_position_loop_margins() -> None:
-    """The position loop around the closed velocity loop: crossover at K_p/2π (the fast velocity
-    loop makes it an integrator there), and the reported gain margin is where it goes unstable:
+    """The position loop around the closed velocity loop: crossover near K_p/2π (the velocity
+    loop makes it an integrator there; its closed-loop peak lifts it by up to 15 %), and the
+    reported gain margin is where it goes unstable:
     checked by the roots of 1 + g·L(z) = 0 (numpy), not through python-control's margins."""
     import control as ct
 
     s, v = _reference()
     pm = s.position_margins
     assert pm is not None and pm.stable and pm.phase_margin_deg > 60.0
-    assert pm.crossover_hz == pytest.approx(s.position_gain_per_s / (2 * math.pi), rel=0.05)
+    assert pm.crossover_hz == pytest.approx(s.position_gain_per_s / (2 * math.pi), rel=0.15)
     Ts = 1 / FS
     velocity = loop_transfer(s, IDENTIFIED)
     L = s.position_gain_per_s * ct.tf([Ts, 0.0], [1.0, -1.0], Ts) * ct.feedback(
@@ -238,21 +245,30 @@ def test_position_loop_margins() -> None:
 def test_identified_current_loop_and_friction_are_used() -> None:
     """An identification that kept a current-loop lag and Coulomb friction (issue #8's terms):
     the design uses the lag unless the configuration gives the drive's own figure, and the
-    verification on the identified model (a real axis) includes both."""
+    verification on the identified model (a real axis) includes both, as the uncertainty set's
+    worst member (current loop ×0.5, one more sample of delay)."""
     from types import SimpleNamespace
+
+    from commission.tuning.settings import Source
 
     ident = SimpleNamespace(parameters=IDENTIFIED, epsilon_rad=EPS_ID, backlash_detected=True,
                             current_loop={"bandwidth_hz": 1000.0},
                             friction={"velocity_scale_rad_s": 1e-3, "motor_nm": 0.01, "load_nm": 0.01})
     s = design(ident, TuningOptions())
     assert s.current_loop_bandwidth_hz == 1000.0
-    assert any("from the identification" in n for n in s.notes)
-    ideal, _ = _reference()
-    assert s.velocity_gain < 0.8 * ideal.velocity_gain  # the lag costs phase: a lower gain
+    assert s.dynamics is not None and s.dynamics.current_loop_bandwidth_hz.how is Source.IDENTIFIED
+    assert any(n.startswith("current loop 1000 Hz: identified") for n in s.notes)
+    assumed, _ = _reference()  # the same model with the assumed 2 kHz current loop
+    assert s.velocity_gain < 0.9 * assumed.velocity_gain  # the slower loop costs phase: a lower gain
     assert design(ident, TuningOptions(current_loop_bandwidth_hz=2000.0)).current_loop_bandwidth_hz == 2000.0
     v = verify(s, ident, scenarios=("position_step",))
-    assert v.plant.coulomb_load_nm == 0.01 and v.plant.current_loop_bandwidth_hz == 1000.0
-    assert v.margins.phase_margin_deg >= 45.0
+    assert v.plant.coulomb_load_nm == 0.01
+    assert s.robust is not None
+    m = s.robust.phase_member
+    assert v.plant.current_loop_bandwidth_hz == pytest.approx(1000.0 * m.current_loop_factor)
+    assert v.plant.delay_samples == math.ceil(s.loop_delay_samples + m.extra_delay_samples)
+    assert v.plant.delay_samples > s.loop_delay_samples  # not the design model
+    assert v.margins.phase_margin_deg >= 45.0 and v.ready, v.reasons
 
 
 def test_no_compensation_from_a_model_that_does_not_explain_the_data() -> None:
@@ -261,9 +277,8 @@ def test_no_compensation_from_a_model_that_does_not_explain_the_data() -> None:
     from types import SimpleNamespace
 
     def ident(ratio: float) -> SimpleNamespace:
-        stage = SimpleNamespace(detail={"residual_ratio": ratio})
-        return SimpleNamespace(parameters=IDENTIFIED, epsilon_rad=EPS_ID, backlash_detected=True,
-                               stage=lambda name: stage)
+        fit = SimpleNamespace(residual_ratio=ratio, approximate=False, noise_limited=False)
+        return SimpleNamespace(parameters=IDENTIFIED, epsilon_rad=EPS_ID, backlash_detected=True, fit=fit)
 
     poor = design(ident(0.02), TuningOptions())
     assert not poor.backlash.enabled and poor.reference_filter_time_constant_s == 0.0
@@ -295,7 +310,9 @@ def test_notch_removes_the_resonance_peak() -> None:
     assert np.max(without) > np.max(with_notch) + 3.0
     v = verify(s, truth, opt, scenarios=("velocity_step",))
     assert v.margins.phase_margin_deg >= 45 and v.margins.gain_margin_db >= 8
-    assert not loop_margins(s, NOTCH_PLANT, notches=False).meets(45.0, 8.0)  # the same gains need it
+    assert s.robust is not None and s.robust.holds
+    # the same gains need it: without it the worst case over the uncertainty set breaks the margins
+    assert not robust_margins(s.without_notch(), NOTCH_PLANT, opt, backlash=True).holds
 
 
 def test_reference_plant_needs_no_notch_and_says_why() -> None:

@@ -3,7 +3,9 @@
 Results (the summary table and a last ``next:`` line saying what to do next) go to
 stdout; progress, diagnostics and warnings to stderr; with ``--json`` stdout carries one
 JSON document and nothing else. Every CommissionError ends as one line on stderr and a
-non-zero exit code; no traceback (``-v`` shows the cause chain).
+non-zero exit code; no traceback (``-v`` shows the cause chain). Ctrl-C at any moment ends
+in exit 130 with the drive stopped and disabled (:mod:`commission.interrupt`); the heavy
+modules are imported only after that handler is in place.
 """
 
 from __future__ import annotations
@@ -12,18 +14,20 @@ import argparse
 import contextlib
 import json
 import sys
+import traceback
 import warnings
 from collections.abc import Iterator, Sequence
 from datetime import datetime
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+from .exceptions import Aborted, CommissionError, ConfigError, IdentificationError, LogFormatError, OutputError
+from .interrupt import caused_by_interrupt, handling_interrupts, requested
 
-from .config import Config, load_config
-from .exceptions import Aborted, CommissionError, LogFormatError, OutputError
-from .recording import Recording
+if TYPE_CHECKING:
+    from .config import Config
+    from .recording import Recording
 
 EPILOG = """\
 modes:
@@ -49,7 +53,8 @@ outputs (in --out DIR, default ./commissioning/<date-time>/):
 The summary goes to stdout, progress and warnings to stderr; the last line says what to do next.
 
 exit codes: 0 ok, 1 other error, 2 config, 3 input file, 4 drive, 5 safety limit, 6 identification,
-            7 output file, 130 interrupted
+            7 output file, 8 done but the identification is approximate (result.json's fit.reasons say why),
+            130 interrupted (Ctrl-C: the drive is stopped and disabled, the log kept)
 """
 
 
@@ -85,7 +90,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="CAN bit rate; with --protocol modbus: the line's baud rate (default: the drive description's)")
     link.add_argument("--node-id", metavar="ID", type=int, help="CANopen node id, or the Modbus device address")
     link.add_argument("--protocol", choices=["canopen", "modbus"], help="protocol on the port (default: canopen for CAN)")
-    link.add_argument("--drive", metavar="NAME", help="drive description under drivers/ (sim, generic-cia402, yaskawa-sigma7; default generic-cia402)")
+    link.add_argument("--drive", metavar="NAME", help="drive description under drivers/ (sim, generic-cia402, yaskawa-sigma7); default: the one "
+                      "matching the drive's identity (0x1018), else generic-cia402; one that does not match is refused")
     link.add_argument(
         "--excitation", choices=["trace", "streamed"],
         help="CANopen: waveform played and traced by the drive (primary), or host-streamed cyclic torque "
@@ -93,8 +99,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     link.add_argument(
         "--allow-narrow-band", action="store_true",
-        help="CANopen streamed: run even if the bus budget's usable band is below the configured f_end_hz",
+        help="CANopen streamed: if the bus budget's usable band is below the configured f_end_hz, end the chirp "
+        "there instead of refusing",
     )
+    link.add_argument("--rate", metavar="HZ", type=float,
+                      help="CANopen streamed: highest cycle rate to use (default: the highest the bus allows)")
     run = p.add_argument_group("run")
     run.add_argument("--config", metavar="FILE", type=Path,
                      help="commissioning recipe: a YAML file, or the name of a shipped one (default, paper-literal, "
@@ -155,6 +164,9 @@ def _default_out_dir() -> Path:
 
 def read_log(path: Path) -> Recording:
     """A Recording from a .mcap or .csv file (truncated MCAP: what was written, with a warning)."""
+    from .mcaplog import regular_file_size
+
+    regular_file_size(str(path), "a log (.mcap or .csv)")  # a FIFO or a device would block or never end
     suffix = path.suffix.lower()
     if suffix == ".mcap":
         from .mcaplog import read_recording
@@ -168,6 +180,8 @@ def read_log(path: Path) -> Recording:
 
 
 def _recording_summary(rec: Recording) -> dict[str, Any]:
+    import numpy as np
+
     return {
         "samples": len(rec),
         "sample_rate_hz": rec.sample_rate_hz,
@@ -177,6 +191,8 @@ def _recording_summary(rec: Recording) -> dict[str, Any]:
         "peak_motor_velocity_rad_s": float(np.max(np.abs(rec.motor_velocity))),
         "drive": rec.drive.to_dict(),
         "status": rec.metadata.get("status", "unknown"),
+        **{key: rec.metadata[key] for key in ("bus_budget", "stream") if key in rec.metadata},
+        "lost_samples": int(rec.lost_mask.sum()),
     }
 
 
@@ -193,10 +209,17 @@ class _Terminal:
         self.console = Console(stderr=True, quiet=quiet, highlight=False)
         self._progress: Any = None
         self._tasks: dict[str, Any] = {}
+        self._tenths: dict[str, int] = {}
 
     def say(self, text: str) -> None:
         """A diagnostic line on stderr (rich markup), never wrapped (a log keeps it on one line)."""
         self.console.print(text, soft_wrap=True)
+
+    def stage(self, name: str) -> None:
+        """-v: ``stage: NAME`` on stderr as each step of a run on a drive begins (open, limits, download,
+        enable, excitation, log, identification, tuning, report)."""
+        if self.verbose:
+            self.console.print(f"stage: {name}", markup=False, soft_wrap=True)
 
     def result(self, text: str) -> None:
         """A plain result line on stdout, never wrapped (a path stays whole)."""
@@ -204,6 +227,12 @@ class _Terminal:
 
     def progress(self, label: str, done: int, total: int, detail: str = "") -> None:
         if self.quiet:
+            return
+        if self.verbose and not self.console.is_terminal:  # a log file gets a line per tenth instead of a bar
+            tenth = 10 * done // max(1, total)
+            if tenth > self._tenths.get(label, -1):
+                self._tenths[label] = tenth
+                self.console.print(f"{label}: {10 * tenth} %", markup=False, soft_wrap=True)
             return
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -255,6 +284,10 @@ def _identifier(config: Config, args: argparse.Namespace, term: _Terminal) -> An
 
         try:
             return identify(recording, options, progress=progress)
+        except IdentificationError as err:
+            if "stream" in recording.metadata:  # a streamed record: say how the stream went, it may be why
+                err.args = (f"{err} ({recording.metadata['stream']})",)
+            raise
         finally:
             term.close()
 
@@ -287,8 +320,12 @@ def _replay(args: argparse.Namespace, config: Config, term: _Terminal, identify:
         result["identification"] = identification.to_dict(str(args.replay))
         result["files"].append(str(write_result(out_dir, identification, str(args.replay))))
         if not args.no_tune:
+            # the excitation's band, when the log says what it was (a CSV file does not)
+            exc = (recorded.get("excitation") or {}) if args.replay.suffix.lower() == ".mcap" else {}
+            band = ((float(exc["f_start_hz"]), float(exc["f_end_hz"])) if {"f_start_hz", "f_end_hz"} <= set(exc)
+                    else None)
             tuning = tune_and_export(out_dir, identification, _tuning_options(config, args), _description(args),
-                                     plant)
+                                     plant, band)
             result["controller"] = tuning.controller
             result["files"] += [str(f) for f in tuning.files]
     from .sequencer import write_run_report
@@ -303,6 +340,8 @@ def _replay(args: argparse.Namespace, config: Config, term: _Terminal, identify:
 
 
 def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
+    from .config import load_config
+
     config: Config = load_config(args.config)
     out_dir = args.out or _default_out_dir()
     result: dict[str, Any] = {"out_dir": str(out_dir), "files": []}
@@ -318,7 +357,7 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
         return _replay(args, config, term, identify, out_dir, result)
 
     from .drive import open_drive
-    from .sequencer import Sequencer
+    from .sequencer import release
 
     sim_plant = dict(config.sim)
     if args.seed is not None:
@@ -332,18 +371,37 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     )
     if over_can:
         link_options.update(band_hz=config.excitation.f_end_hz, allow_narrow_band=args.allow_narrow_band)
+        if args.rate is not None:
+            link_options["max_rate_hz"] = args.rate
         if args.excitation:
             link_options["excitation"] = args.excitation
+    if (args.apply or args.restore_from is not None) and not args.yes and not sys.stdin.isatty():
+        what = "--apply" if args.apply else "--restore-from"
+        raise ConfigError(f"{what} asks before it writes, and the input is not a terminal: pass --yes "
+                          "(nothing was run or written)")
+    term.stage("open")
     drive = open_drive(
         sim=args.sim, port=args.port, interface=args.interface, protocol=args.protocol,
         sim_plant=sim_plant if args.sim else None, sim_link=args.sim_link, **link_options,
     )
-    if args.restore_from is not None:
-        with drive:
-            return _restore(args, drive, out_dir, term, result)
-    if args.apply:  # refuse before anything moves, not after the experiment
-        from .exceptions import ConfigError
+    try:
+        return _with_drive(args, term, config, drive, out_dir, identify, sim_plant, result)
+    finally:
+        problem = release(drive)
+        if problem and not requested():
+            warnings.warn(problem, stacklevel=1)
 
+
+def _with_drive(args: argparse.Namespace, term: _Terminal, config: Config, drive: Any, out_dir: Path, identify: Any,
+                sim_plant: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
+    """The run on an open drive (the caller stops and closes it, whatever happens here)."""
+    import numpy as np
+
+    from .sequencer import Sequencer
+
+    if args.restore_from is not None:
+        return _restore(args, drive, out_dir, term, result)
+    if args.apply:  # refuse before anything moves, not after the experiment
         problem = None
         if args.no_identify or args.no_tune:
             problem = "--apply needs controller settings: do not combine it with --no-identify or --no-tune"
@@ -353,27 +411,32 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
         elif args.json and not args.yes:
             problem = "--apply with --json needs --yes (there is no one to ask)"
         if problem is not None:
-            drive.close()
             raise ConfigError(problem)
-    if not args.sim and not args.no_tune and config.tuning.current_loop_bandwidth_hz is None:
-        warnings.warn("tuning assumes an ideal current loop unless the identifier finds its lag: set "
-                      "tuning.current_loop_bandwidth_hz to the drive's for margins that hold on the real axis",
-                      stacklevel=1)
     config = config.model_copy(update={"tuning": _tuning_options(config, args)})
+    budget = getattr(drive, "budget", None)
+    if budget is not None:  # host-streamed: the bus budget before anything moves
+        term.say(f"streamed cycle: {budget.describe()}")
+        if config.excitation.f_end_hz > budget.usable_band_hz:  # --allow-narrow-band: the chirp ends there
+            term.say(f"chirp end frequency {config.excitation.f_end_hz:g} Hz -> {budget.usable_band_hz:g} Hz "
+                     "(the usable band of the streamed cycle)")
+            config = config.model_copy(update={"excitation": config.excitation.model_copy(
+                update={"f_end_hz": budget.usable_band_hz})})
     true_plant = None
     if args.sim:
         from .drive.sim import plant_from_options
 
         true_plant = plant_from_options(sim_plant)
-    with drive:
-        term.say(f"drive: {drive.info.vendor} {drive.info.product} ({drive.info.backend})")
-        sequencer = Sequencer(config, drive, out_dir, progress=term.progress, identify=identify,
-                              tune=not args.no_tune, true_plant=true_plant)
-        outcome = sequencer.run()
-        check = sequencer.measure_backlash() if args.measure_backlash else None
-        term.close()
-        if args.apply:
-            result["apply"] = _apply(args, drive, outcome, term)
+    term.say(f"drive: {drive.info.vendor} {drive.info.product} ({drive.info.backend})")
+    sequencer = Sequencer(config, drive, out_dir, progress=term.progress, identify=identify,
+                          tune=not args.no_tune, true_plant=true_plant, stage=term.stage,
+                          description=getattr(drive, "description", None) or _description(args))
+    outcome = sequencer.run()
+    if "stream" in outcome.recording.metadata:
+        term.say(outcome.recording.metadata["stream"])
+    check = sequencer.measure_backlash() if args.measure_backlash else None
+    term.close()
+    if args.apply:
+        result["apply"] = _apply(args, drive, outcome, term, sequencer, config)
     if check is not None:
         _, reversals, check_log = check
         result["backlash_check"] = {
@@ -501,19 +564,28 @@ def _confirm(term: _Terminal) -> Any:
     return ask
 
 
-def _apply(args: argparse.Namespace, drive: Any, outcome: Any, term: _Terminal) -> dict[str, Any]:
-    """--apply: write the verified settings through the drive's parameter map, logged in run.mcap."""
+def _apply(args: argparse.Namespace, drive: Any, outcome: Any, term: _Terminal, sequencer: Any,
+           config: Config) -> dict[str, Any]:
+    """--apply: write the verified settings in two stages through the drive's parameter map (a
+    conservative set, a closed-loop check on the drive, the final set and its check; the previous
+    values back on a failed check), every value logged in run.mcap."""
     from .mcaplog import append_result
-    from .tuning import TuningError, apply, drive_parameters
+    from .tuning import TuningError, apply_staged, conservative_settings, drive_parameters
 
     assert outcome.tuning is not None  # checked before the run
-    verification = outcome.tuning.verification
-    if not verification.ready:
-        raise TuningError("settings are not ready, nothing written: " + "; ".join(verification.reasons))
-    report = apply(drive, drive_parameters(outcome.tuning.settings, drive.description), yes=args.yes,
-                   confirm=_confirm(term), store=args.store,
-                   log=lambda topic, payload: append_result(outcome.log_path, topic, payload), echo=term.say)
-    return {"applied": report.applied, "written": report.written, "stored": report.stored}
+    if not outcome.tuning.controller["verification"]["ready"]:
+        raise TuningError("settings are not ready, nothing written: "
+                          + "; ".join(outcome.tuning.controller["verification"]["reasons"]))
+    settings, options = outcome.tuning.settings, config.tuning
+    checks = iter(range(1, 3))
+    report = apply_staged(
+        drive, drive_parameters(conservative_settings(settings, options.apply_conservative_fraction), drive.description),
+        drive_parameters(settings, drive.description),
+        lambda reference: sequencer.closed_loop_check(reference, f"apply-check-{next(checks)}.mcap"), options,
+        torque_limit_nm=config.safety.max_torque_nm, sample_rate_hz=config.excitation.sample_rate_hz, yes=args.yes,
+        confirm=_confirm(term), store=args.store,
+        log=lambda topic, payload: append_result(outcome.log_path, topic, payload), echo=term.say)
+    return report.as_dict()
 
 
 def _restore(args: argparse.Namespace, drive: Any, out_dir: Path, term: _Terminal,
@@ -599,13 +671,8 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
         fit = ident.get("fit")
         if fit is not None:
             rows.append(("model fit", f"{100 * fit['residual_ratio']:.3g} % of the torque unexplained"
-                         + (f", {100 * fit['dropped_fraction']:.1f} % of the record dropped"
-                            + (f" ({100 * fit['residual_ratio_all_samples']:.2g} % over all of it)"
-                               if "residual_ratio_all_samples" in fit else "")
-                            if fit["dropped_fraction"] else "")
                          + (" (white torque noise)" if fit.get("noise_limited") else "")
-                         + ("  APPROXIMATE: the model does not reproduce this axis (notes: -v)"
-                            if fit["approximate"] else "")))
+                         + ("  APPROXIMATE: " + "; ".join(fit.get("reasons", [])) if fit["approximate"] else "")))
     ctl = result.get("controller")
     if ctl is not None:
         vl, m, ver = ctl["velocity_loop"], ctl["margins"], ctl["verification"]
@@ -619,6 +686,7 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
                                  if ctl["position_loop"].get("reference_filter_time_constant_s") else "")),
             ("notch / backlash comp.", f"{notch} / {bc.get('amount_rad', 0.0) * 1e3:.3g} mrad"),
             ("margins", f"PM {m['phase_margin_deg']:.1f}°  GM {m['gain_margin_db']:.1f} dB"),
+            *_robust_rows(ctl),
             ("controller ready", "yes" if ver.get("ready") else "NO: " + "; ".join(ver.get("reasons", []))),
         ]
     if "backlash_check" in result:
@@ -657,8 +725,14 @@ def _announce_compilation(term: _Terminal) -> Iterator[None]:
         def on_start(self, ev: event.Event) -> None:
             if not self.said:
                 self.said = True
-                term.say("compiling the numerical kernels (numba; once after an install, about half a minute; "
-                         "`commission --warm-cache` does it ahead)")
+                from . import jitcache
+
+                if jitcache.uncached_reason:
+                    term.say(f"compiling the numerical kernels (numba, about half a minute): {jitcache.uncached_reason}, "
+                             "so on every run")
+                else:
+                    term.say("compiling the numerical kernels (numba; once after an install, about half a minute; "
+                             "`commission --warm-cache` does it ahead)")
 
         def on_end(self, ev: event.Event) -> None:
             pass
@@ -702,7 +776,44 @@ def _next_step(args: argparse.Namespace, result: dict[str, Any]) -> str:
     return f"next: {see}; the settings are ready: run again with --apply to write them to the drive"
 
 
+def _robust_rows(ctl: dict[str, Any]) -> list[tuple[str, str]]:
+    """The worst case over the uncertainty set and what limited the bandwidth (controller.json)."""
+    rows = []
+    rb, lim, band = ctl.get("robust"), ctl.get("bandwidth_limit"), ctl.get("measured_band") or {}
+    if rb:
+        rows.append(("worst-case margins", f"PM {rb['phase_margin_deg']:.1f}° ({rb['phase_margin_member']['description']})"
+                     f"  GM {rb['gain_margin_db']:.1f} dB ({rb['gain_margin_member']['description']})"
+                     f" over {rb['members']} members"))
+    if band.get("band_hz") and band.get("crossover_hz") is not None:
+        lo, hi = band["band_hz"]
+        rows.append(("crossover / band", f"{band['crossover_hz']:.0f} Hz in the measured {lo:g}–{hi:g} Hz"
+                     + (f" (limit {band['crossover_limit_hz']:.0f} Hz)" if band.get("crossover_limit_hz") else "")))
+    if lim:
+        rows.append(("bandwidth limited by", f"{lim['factor']}: {lim['detail']}"))
+    return rows
+
+
+#: Exit code of a run that wrote all its outputs but whose identification is approximate.
+APPROXIMATE_EXIT_CODE = 8
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """The ``commission`` command; returns its exit code."""
+    with handling_interrupts():
+        try:
+            return _main(argv)
+        except KeyboardInterrupt:  # before or after _main's own handlers (start-up, the last print)
+            print("commission: interrupted", file=sys.stderr)
+            return Aborted.exit_code
+
+
+def _one_line(err: BaseException) -> str:
+    text = " ".join(str(err).split())
+    notes = " ".join(" ".join(str(n).split()) for n in getattr(err, "__notes__", ()))
+    return f"{text} ({notes})" if notes else text
+
+
+def _main(argv: Sequence[str] | None) -> int:
     args = build_parser().parse_args(argv)
     term = _Terminal(quiet=args.json, verbose=args.verbose)
     try:
@@ -714,20 +825,35 @@ def main(argv: Sequence[str] | None = None) -> int:
             result.setdefault("warnings", []).append(str(w.message))
     except CommissionError as err:
         term.close()
-        print(f"commission: error: {err}", file=sys.stderr)
-        if args.verbose and err.__cause__ is not None:
+        if requested() and not isinstance(err, Aborted):  # a library turned Ctrl-C into its own error
+            print(f"commission: error: interrupted ({_one_line(err)})", file=sys.stderr)
+            return Aborted.exit_code
+        print(f"commission: error: {_one_line(err)}", file=sys.stderr)
+        if args.verbose and err.__cause__ is not None and str(err.__cause__):
             print(f"  caused by: {type(err.__cause__).__name__}: {err.__cause__}", file=sys.stderr)
         return err.exit_code
     except KeyboardInterrupt:
         term.close()
         print("commission: interrupted", file=sys.stderr)
         return Aborted.exit_code
+    except Exception as err:  # noqa: BLE001 - a bug still ends in one line (the drive was stopped on the way out)
+        term.close()
+        if caused_by_interrupt(err):
+            print(f"commission: error: interrupted ({type(err).__name__}: {_one_line(err)})", file=sys.stderr)
+            return Aborted.exit_code
+        print(f"commission: internal error: {type(err).__name__}: {_one_line(err)} "
+              "(a bug in drive-commission: please report it with the output of -v)", file=sys.stderr)
+        if args.verbose:
+            traceback.print_exception(err, file=sys.stderr)
+        return 1
     if args.json:
         json.dump(result, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
         term.result(_next_step(args, result))
-    return 0
+    # everything was written, but the model may be off by more than its intervals say
+    approximate = bool(((result.get("identification") or {}).get("fit") or {}).get("approximate"))
+    return APPROXIMATE_EXIT_CODE if approximate else 0
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -16,6 +16,9 @@ be the SI unit below): ``t`` [s], ``torque_ref`` [N·m] and ``motor_velocity``
 ``load_velocity`` [rad/s] are optional; any other column is an error. The
 separator is ``,`` (``;`` or tab when the header has no comma).
 
+The file is read line by line (a regular file; lines of at most 64 Ki characters, at most
+4.8 million data rows), so its size bounds neither the memory nor the time before an error.
+
 Sampling must be uniform: every interval within 1e-3 of the median interval.
 The sample rate is ``sample_rate_hz`` from its directive when given (it must
 agree with the data), else 1 / median interval. ``start_time`` is the
@@ -32,18 +35,21 @@ import csv
 import io
 import os
 import re
-from collections.abc import Sequence
+from array import array
+from collections.abc import Iterator, Sequence
 from datetime import datetime, timezone
 
 import numpy as np
 
 from .exceptions import LogFormatError, RecordingError
-from .recording import REQUIRED_SIGNALS, SIGNAL_UNITS, Recording
+from .recording import MAX_SAMPLES, REQUIRED_SIGNALS, SIGNAL_UNITS, Recording
 
 __all__ = ["UNIFORM_TOLERANCE", "read_csv", "write_csv"]
 
 #: Largest deviation of a sample interval from the median one, relative to it.
 UNIFORM_TOLERANCE = 1e-3
+#: Longest line read (a row of six floats written with repr is under 150 characters).
+MAX_LINE_CHARS = 1 << 16
 
 _UNITS = {"t": "s", **SIGNAL_UNITS}
 _UNIT_ALIASES = {"N·m": {"N·m", "Nm", "N*m", "N.m", "N m", "N⋅m"}}
@@ -56,76 +62,117 @@ def _unit_ok(expected: str, given: str) -> bool:
 
 
 def read_csv(path: str | os.PathLike[str]) -> Recording:
-    """Read a CSV replay log (format in the module docstring) as a Recording."""
+    """Read a CSV replay log (format in the module docstring) as a Recording.
+
+    The file is read line by line into float arrays (memory ~8 bytes per value); it must be a
+    regular file, lines at most :data:`MAX_LINE_CHARS` long and at most
+    :data:`~commission.recording.MAX_SAMPLES` data rows.
+    """
+    from .mcaplog import regular_file_size
+
     p = os.fspath(path)
+    regular_file_size(p, "a CSV file")
     try:
-        with open(p, encoding="utf-8-sig", newline="") as f:
-            text = f.read()
         mtime = os.stat(p).st_mtime
+        with open(p, encoding="utf-8-sig", newline="") as f:
+            lines = _Lines(p, f)
+            try:
+                return _read(p, lines, mtime)
+            except UnicodeDecodeError as err:
+                raise LogFormatError(f"{p}: not a text file (invalid UTF-8 in line {lines.lineno + 1})") from err
     except FileNotFoundError as err:
         raise LogFormatError(f"{p}: no such file") from err
-    except IsADirectoryError as err:
-        raise LogFormatError(f"{p}: is a directory, not a CSV file") from err
-    except UnicodeDecodeError as err:
-        raise LogFormatError(f"{p}: not a text file (invalid UTF-8 at byte {err.start})") from err
     except OSError as err:
         raise LogFormatError(f"{p}: cannot read ({err.strerror or err})") from err
-    if not text.strip():
-        raise LogFormatError(f"{p}: empty file")
 
-    lines = text.splitlines()
+
+class _Lines:
+    """The lines of a text file, each at most MAX_LINE_CHARS long, numbered from 1 (``lineno``:
+    the last line handed out)."""
+
+    def __init__(self, path: str, f: io.TextIOBase) -> None:
+        self._path, self._f = path, f
+        self.lineno = 0
+
+    def __iter__(self) -> Iterator[str]:
+        return self
+
+    def __next__(self) -> str:
+        line = self._f.readline(MAX_LINE_CHARS + 1)
+        if not line:
+            raise StopIteration
+        self.lineno += 1
+        if len(line) > MAX_LINE_CHARS:
+            raise LogFormatError(f"{self._path}: line {self.lineno} is longer than {MAX_LINE_CHARS:,} characters: "
+                                 "not a CSV log")
+        return line
+
+
+def _read(p: str, lines: _Lines, mtime: float) -> Recording:
     directives: dict[str, tuple[int, str]] = {}
-    header_at = None
-    for i, line in enumerate(lines):
+    header_line = None
+    seen_text = False
+    for line in lines:
         stripped = line.strip()
         if not stripped:
             continue
+        seen_text = True
         if stripped.startswith("#"):
             m = _DIRECTIVE.match(stripped)
             if m:
-                directives[m.group(1)] = (i + 1, m.group(2))
+                directives[m.group(1)] = (lines.lineno, m.group(2))
             continue
-        header_at = i
+        header_line = line
         break
-    if header_at is None:
+    if not seen_text:
+        raise LogFormatError(f"{p}: empty file")
+    if header_line is None:
         raise LogFormatError(f"{p}: no header line (only comments)")
-    header_line = lines[header_at]
+    header_at = lines.lineno
+    header_line = header_line.rstrip("\r\n")
     delimiter = "," if "," in header_line else ";" if ";" in header_line else "\t" if "\t" in header_line else ","
-    columns = _parse_header(p, header_at + 1, next(csv.reader([header_line], delimiter=delimiter)))
+    try:
+        header_cells = next(csv.reader([header_line], delimiter=delimiter))
+    except (csv.Error, StopIteration) as err:
+        raise LogFormatError(f"{p}: line {header_at}: not a CSV header ({err})") from None
+    columns = _parse_header(p, header_at, header_cells)
 
-    rows: list[list[float]] = []
-    line_numbers: list[int] = []
-    reader = csv.reader(io.StringIO("\n".join(lines[header_at + 1 :])), delimiter=delimiter)
-    for offset, cells in enumerate(reader):
-        lineno = header_at + 2 + offset
-        if not cells or (len(cells) == 1 and not cells[0].strip()) or cells[0].lstrip().startswith("#"):
-            continue
-        if len(cells) != len(columns):
-            raise LogFormatError(f"{p}: line {lineno}: {len(cells)} cells, the header has {len(columns)} columns")
-        try:
-            row = [float(c) for c in cells]
-        except ValueError:
-            row = []
-            for name, cell in zip(columns, cells):
+    values = [array("d") for _ in columns]
+    line_numbers = array("q")
+    reader = csv.reader(lines, delimiter=delimiter)
+    try:
+        for cells in reader:
+            lineno = lines.lineno
+            if not cells or (len(cells) == 1 and not cells[0].strip()) or cells[0].lstrip().startswith("#"):
+                continue
+            if len(cells) != len(columns):
+                raise LogFormatError(f"{p}: line {lineno}: {len(cells)} cells, the header has {len(columns)} columns")
+            if len(line_numbers) >= MAX_SAMPLES:
+                raise LogFormatError(f"{p}: more than {MAX_SAMPLES:,} data rows, more than a run records "
+                                     "(10 minutes at 8 kHz)")
+            for name, cell, column in zip(columns, cells, values):
                 try:
-                    row.append(float(cell))
+                    column.append(float(cell))
                 except ValueError:
-                    what = "empty cell" if not cell.strip() else f"not a number ({cell.strip()!r})"
+                    what = "empty cell" if not cell.strip() else f"not a number ({cell.strip()[:40]!r})"
                     raise LogFormatError(f"{p}: line {lineno}, column '{name}': {what}") from None
-        rows.append(row)
-        line_numbers.append(lineno)
+            line_numbers.append(lineno)
+    except csv.Error as err:
+        raise LogFormatError(f"{p}: line {lines.lineno}: not CSV ({err})") from None
 
-    if len(rows) < 2:
-        raise LogFormatError(f"{p}: {len(rows)} data row{'s' if len(rows) != 1 else ''}, a recording needs at least 2")
-    data = np.array(rows, dtype=np.float64)
-    bad = ~np.isfinite(data)
-    if bad.any():
-        r, c = np.argwhere(bad)[0]
-        raise LogFormatError(
-            f"{p}: line {line_numbers[r]}, column '{columns[c]}': {float(data[r, c])!r} is not a finite number"
-        )
+    n_rows = len(line_numbers)
+    if n_rows < 2:
+        raise LogFormatError(f"{p}: {n_rows} data row{'s' if n_rows != 1 else ''}, a recording needs at least 2")
+    data = {name: np.frombuffer(column, dtype=np.float64) for name, column in zip(columns, values)}
+    for name in columns:
+        bad = ~np.isfinite(data[name])
+        if bad.any():
+            r = int(np.argmax(bad))
+            raise LogFormatError(
+                f"{p}: line {line_numbers[r]}, column '{name}': {float(data[name][r])!r} is not a finite number"
+            )
 
-    t = data[:, columns.index("t")]
+    t = data["t"]
     dt = np.diff(t)
     if np.any(dt <= 0):
         k = int(np.argmax(dt <= 0)) + 1
@@ -147,10 +194,10 @@ def read_csv(path: str | os.PathLike[str]) -> Recording:
         try:
             given = float(value)
         except ValueError:
-            raise LogFormatError(f"{p}: line {lineno}: sample_rate_hz {value!r} is not a number") from None
+            raise LogFormatError(f"{p}: line {lineno}: sample_rate_hz {value[:40]!r} is not a number") from None
         if not (np.isfinite(given) and given > 0) or abs(given * dt_med - 1.0) > UNIFORM_TOLERANCE:
             raise LogFormatError(
-                f"{p}: line {lineno}: sample_rate_hz {value} disagrees with the time column "
+                f"{p}: line {lineno}: sample_rate_hz {value[:40]} disagrees with the time column "
                 f"({sample_rate_hz:.9g} Hz from the median interval)"
             )
         sample_rate_hz = given
@@ -160,11 +207,11 @@ def read_csv(path: str | os.PathLike[str]) -> Recording:
         try:
             start_time = datetime.fromisoformat(value)
         except ValueError:
-            raise LogFormatError(f"{p}: line {lineno}: start_time {value!r} is not an ISO-8601 time") from None
+            raise LogFormatError(f"{p}: line {lineno}: start_time {value[:40]!r} is not an ISO-8601 time") from None
         if start_time.tzinfo is None:
             raise LogFormatError(f"{p}: line {lineno}: start_time {value!r} has no time zone (add +00:00 for UTC)")
 
-    signals = {name: data[:, i] for i, name in enumerate(columns) if name != "t"}
+    signals = {name: data[name] for name in columns if name != "t"}
     try:
         return Recording(
             t=t,
@@ -191,8 +238,9 @@ def _parse_header(path: str, lineno: int, cells: Sequence[str]) -> list[str]:
         names.append(name)
     unknown = [n for n in names if n not in _UNITS]
     if unknown:
+        more = f" and {len(unknown) - 5:,} more" if len(unknown) > 5 else ""
         raise LogFormatError(
-            f"{path}: line {lineno}: unknown column(s) {', '.join(map(repr, unknown))}; "
+            f"{path}: line {lineno}: unknown column(s) {', '.join(map(repr, unknown[:5]))}{more}; "
             f"known: {', '.join(_UNITS)}"
         )
     duplicate = sorted({n for n in names if names.count(n) > 1})

@@ -38,8 +38,10 @@ def rigid_body_response(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(velocity [rad/s], position [rad]) of J·dv/dt = τ − B·v under ZOH torque, from rest; shapes (N,)."""
     ts = 1.0 / sample_rate_hz
-    a = np.exp(-damping_nm_s_per_rad * ts / inertia_kg_m2)
-    gain = (1.0 - a) / damping_nm_s_per_rad
+    x = damping_nm_s_per_rad * ts / inertia_kg_m2
+    a = np.exp(-x)
+    # expm1: with 1 − a the gain of a nearly undamped axis rounds to 0, and every speed to 0
+    gain = -np.expm1(-x) / damping_nm_s_per_rad
     v = lfilter([0.0, gain], [1.0, -a], torque_nm)
     x = np.cumsum(v) * ts
     return v, x
@@ -74,6 +76,35 @@ def _checked(
             f"above the travel limit of {safety.max_travel_rad:.4g} rad"
         )
     return check
+
+
+@dataclass(frozen=True)
+class HeldLimits:
+    """The limits as the drive will hold them: the configured ones in the drive's own units,
+    rounded as the backend writes them (CiA 402 0x6072 in whole per mille of the rated torque,
+    0x6080 in whole rpm, both rounded down)."""
+
+    torque_nm: float
+    speed_rad_s: float
+
+
+def check_held_limits(check: EnvelopeCheck, held: HeldLimits, what: str = "excitation") -> None:
+    """Hold the checked peaks to the limits as the drive holds them (a peak just under the
+    configured torque limit can be above the limit the drive rounded it down to: it would trip
+    mid-run). Raises SafetyLimitExceeded, naming both figures."""
+    if check.peak_torque_nm > held.torque_nm:
+        raise SafetyLimitExceeded(
+            f"{what} torque peaks at {check.peak_torque_nm:.6g} N·m, above the torque limit as the drive will hold "
+            f"it, {held.torque_nm:.6g} N·m (safety.max_torque_nm = {check.max_torque_nm:.6g} N·m rounded down to the "
+            "drive's unit): raise safety.max_torque_nm or lower the excitation"
+        )
+    speed = check.predicted_peak_speed_rad_s * check.margin
+    if speed > held.speed_rad_s:
+        raise SafetyLimitExceeded(
+            f"{what} would reach {check.predicted_peak_speed_rad_s:.6g} rad/s (×{check.margin:g} margin), above the "
+            f"speed limit as the drive will hold it, {held.speed_rad_s:.6g} rad/s (safety.max_speed_rad_s = "
+            f"{check.max_speed_rad_s:.6g} rad/s rounded down to the drive's unit)"
+        )
 
 
 def check_envelope(torque_nm: NDArray[np.float64], sample_rate_hz: float, safety: SafetyConfig) -> EnvelopeCheck:

@@ -77,10 +77,12 @@ as well as 256 KiB or 1 MiB; 16 KiB makes the file 3 % larger
 
 from __future__ import annotations
 
+import errno
 import io
-import itertools
 import json
+import math
 import os
+import stat
 import struct
 import time
 import warnings
@@ -96,14 +98,14 @@ import zstandard
 from mcap.decoder import DecoderFactory
 from mcap.exceptions import EndOfFile, McapError
 from mcap.opcode import Opcode
-from mcap.records import Channel, Message, Metadata, Schema, Statistics
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, Message, Metadata, Schema, Statistics
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 from numpy.typing import ArrayLike, NDArray
 
 from .exceptions import LogFormatError, RecordingError
-from .recording import REQUIRED_SIGNALS, SIGNAL_UNITS, DriveInfo, Recording
+from .recording import MAX_SAMPLES, REQUIRED_SIGNALS, SIGNAL_UNITS, DriveInfo, Recording
 
 __all__ = [
     "FORMAT_VERSION",
@@ -131,6 +133,11 @@ _SIGNAL_TOPICS: Mapping[str, str] = {f"/{name}": name for name in SIGNAL_UNITS}
 #: Topic of the per-sample messages for Foxglove's Plot panel (``plot_every``).
 PLOT_TOPIC = "/samples"
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+#: Largest log file read: ten minutes at 8 kHz take ~240 MB; the file is read into memory whole.
+MAX_LOG_BYTES = 512 << 20
+#: Largest chunk a log may hold once decompressed (this writer's are 64 KiB): a compressed chunk
+#: declaring more is refused before it is decompressed.
+MAX_CHUNK_BYTES = 64 << 20
 
 try:
     TOOL_VERSION = version("drive-commission")
@@ -295,6 +302,7 @@ class RecordingWriter:
         self._pending_n = 0
         self._result_channels: dict[str, int] = {}
         self._closed = False
+        self._cut = False  # a block was cut short on some channels (an exception inside _emit_block)
 
         self._file = open(self._path, "wb")  # noqa: SIM115 - closed in close()
         try:
@@ -475,7 +483,10 @@ class RecordingWriter:
             return
         self._closed = True
         try:
-            if self._pending_n:
+            if self._cut:
+                status = status if status != "complete" else "aborted"
+                status += " (the last block was cut while it was written)"
+            elif self._pending_n:
                 self._emit(partial=True)
             self._close_chunk()
             self._writer.add_metadata(
@@ -496,14 +507,21 @@ class RecordingWriter:
         sig_all = {name: np.concatenate(parts) for name, parts in self._pending.items()}
         total = t_all.shape[0]
         end = total if partial else total - total % self._spm
-        for i0 in range(0, end, self._spm):
-            i1 = min(i0 + self._spm, end)
-            self._emit_block(t_all[i0:i1], {name: arr[i0:i1] for name, arr in sig_all.items()})
-        self._pending_t = [t_all[end:]] if end < total else []
-        self._pending = {name: ([arr[end:]] if end < total else []) for name, arr in sig_all.items()}
-        self._pending_n = total - end
+        done = 0
+        try:
+            for i0 in range(0, end, self._spm):
+                i1 = min(i0 + self._spm, end)
+                self._emit_block(t_all[i0:i1], {name: arr[i0:i1] for name, arr in sig_all.items()})
+                done = i1
+        finally:
+            # written blocks leave the queue even when an exception (Ctrl-C) cut the loop, so that
+            # closing the file afterwards does not write them a second time
+            self._pending_t = [t_all[done:]] if done < total else []
+            self._pending = {name: ([arr[done:]] if done < total else []) for name, arr in sig_all.items()}
+            self._pending_n = total - done
 
     def _emit_block(self, t: NDArray[np.float64], signals: Mapping[str, NDArray[np.float64]]) -> None:
+        self._cut = True  # until every channel has the block: closing then writes no more samples
         t_json = _dumps(t.tolist())
         stamp = max(0, min(self._start_ns + round(float(t[0]) * 1e9), 2**64 - 1))
         for name in self._signals:
@@ -519,6 +537,7 @@ class RecordingWriter:
             self._emit_plot(t, signals)
         self._n_written += t.shape[0]
         self._block += 1
+        self._cut = False
         if self._chunk_bytes >= self._chunk_size:
             self._close_chunk()
 
@@ -588,6 +607,10 @@ def write_recording(
 # ---------------------------------------------------------------------------------------------
 # reading
 # ---------------------------------------------------------------------------------------------
+#: A decoded sample block: index of its first sample, its times [s], its values.
+_Block = tuple[int, NDArray[np.float64], NDArray[np.float64]]
+
+
 @dataclass
 class _Framing:
     """Where the readable records of a file end, and whether the file is complete."""
@@ -600,25 +623,44 @@ class _Framing:
 class _Contents:
     complete: bool
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
-    blocks: dict[str, list[tuple[int, list[float], list[float]]]] = field(default_factory=dict)
+    blocks: dict[str, list[_Block]] = field(default_factory=dict)
+    samples: dict[str, int] = field(default_factory=dict)
     results: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     message_counts: dict[int, int] = field(default_factory=dict)
     n_messages: int = 0
     statistics: Statistics | None = None
 
 
-def _load(path: str) -> bytes:
+def regular_file_size(path: str, what: str) -> int:
+    """The size [bytes] of ``path``, a regular file (a FIFO or a device could block or never end);
+    LogFormatError naming ``what`` the file should be otherwise."""
     try:
-        with open(path, "rb") as f:
-            data = f.read()
+        info = os.stat(path)
     except FileNotFoundError as err:
         raise LogFormatError(f"{path}: no such file") from err
-    except IsADirectoryError as err:
-        raise LogFormatError(f"{path}: is a directory, not an MCAP file") from err
+    except OSError as err:
+        raise LogFormatError(f"{path}: cannot read ({err.strerror or err})") from err
+    if stat.S_ISDIR(info.st_mode):
+        raise LogFormatError(f"{path}: is a directory, not {what}") from IsADirectoryError(
+            errno.EISDIR, os.strerror(errno.EISDIR), path)
+    if not stat.S_ISREG(info.st_mode):
+        raise LogFormatError(f"{path}: not a regular file (a pipe or a device), not {what}")
+    return info.st_size
+
+
+def _load(path: str) -> bytes:
+    size = regular_file_size(path, "an MCAP file")
+    if size > MAX_LOG_BYTES:
+        raise LogFormatError(f"{path}: {size / 2**20:.0f} MiB, larger than a log can be ({MAX_LOG_BYTES >> 20} MiB)")
+    try:
+        with open(path, "rb") as f:
+            data = f.read(MAX_LOG_BYTES + 1)
     except OSError as err:
         raise LogFormatError(f"{path}: cannot read ({err.strerror or err})") from err
     if not data:
         raise LogFormatError(f"{path}: empty file")
+    if len(data) > MAX_LOG_BYTES:  # grew while it was read
+        raise LogFormatError(f"{path}: larger than a log can be ({MAX_LOG_BYTES >> 20} MiB)")
     return data
 
 
@@ -657,15 +699,56 @@ def _frame(path: str, data: bytes) -> _Framing:
     return _Framing(stop=pos, complete=False)
 
 
+#: What mcap's readers raise on bytes that are not a valid record.
+_CORRUPT = (McapError, ValueError, struct.error, zstandard.ZstdError, EOFError, IndexError, KeyError, OverflowError,
+            RuntimeError, MemoryError)
+
+
 def _records(path: str, data: bytes, framing: _Framing, *, emit_chunks: bool = False) -> Iterator[Any]:
-    """Records up to ``framing.stop`` (chunks opened, CRCs checked), via mcap's StreamReader."""
+    """Records up to ``framing.stop`` (chunks opened, CRCs checked), via mcap's StreamReader; with
+    ``emit_chunks`` the chunks themselves (see :func:`open_chunk`)."""
     reader = StreamReader(io.BytesIO(data[len(_MAGIC) : framing.stop]), skip_magic=True, validate_crcs=True,
-                          emit_chunks=emit_chunks)
+                          emit_chunks=True)
     try:
-        yield from reader.records
+        for record in reader.records:
+            if isinstance(record, Chunk) and not emit_chunks:
+                yield from open_chunk(path, record)
+            else:
+                yield record
     except EndOfFile:  # framing.stop is a record boundary: the stream ends cleanly there
         return
-    except (McapError, ValueError, struct.error, zstandard.ZstdError, EOFError, IndexError, KeyError) as err:
+    except _CORRUPT as err:
+        reason = " ".join(str(err).split()) or type(err).__name__
+        raise LogFormatError(f"{path}: corrupt MCAP file ({reason})") from err
+
+
+def open_chunk(path: str, chunk: Chunk) -> list[Any]:
+    """The records of a chunk (CRC checked), decompressed to at most its declared size, which may
+    be at most MAX_CHUNK_BYTES: a chunk that claims or inflates to more is refused, never
+    decompressed into memory (a zstd frame's own content size would be believed otherwise)."""
+    size = chunk.uncompressed_size
+    if size > MAX_CHUNK_BYTES:
+        raise LogFormatError(f"{path}: corrupt MCAP file (a chunk of {size:,} bytes, at most {MAX_CHUNK_BYTES:,})")
+    try:
+        if chunk.compression == "zstd":
+            with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(chunk.data)) as reader:
+                raw = reader.read(size + 1)
+        elif chunk.compression == "lz4":
+            import lz4.frame
+
+            raw = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=size + 1)
+        elif chunk.compression == "":
+            raw = chunk.data
+        else:
+            raise LogFormatError(f"{path}: unsupported chunk compression {chunk.compression!r}")
+        if len(raw) != size:
+            raise LogFormatError(f"{path}: corrupt MCAP file (a chunk holds {len(raw):,} bytes, it says {size:,})")
+        plain = Chunk(message_start_time=chunk.message_start_time, message_end_time=chunk.message_end_time,
+                      uncompressed_size=size, uncompressed_crc=chunk.uncompressed_crc, compression="", data=raw)
+        return breakup_chunk(plain, validate_crc=True)
+    except LogFormatError:
+        raise
+    except (*_CORRUPT, ImportError) as err:
         reason = " ".join(str(err).split()) or type(err).__name__
         raise LogFormatError(f"{path}: corrupt MCAP file ({reason})") from err
 
@@ -687,7 +770,12 @@ def _scan(path: str, *, signals: bool = True, results: bool = True, stop_after: 
                 continue  # a decimated copy of the blocks, for Foxglove
             if name is not None:
                 if signals:
-                    contents.blocks.setdefault(name, []).append(_decode_block(path, channel.topic, record))
+                    block = _decode_block(path, channel.topic, record)
+                    contents.blocks.setdefault(name, []).append(block)
+                    n = contents.samples[name] = contents.samples.get(name, 0) + len(block[1])
+                    if n > MAX_SAMPLES:
+                        raise LogFormatError(f"{path}: more than {MAX_SAMPLES:,} samples of {name}, more than a run "
+                                             "records (10 minutes at 8 kHz)")
             elif results:
                 contents.results.setdefault(channel.topic, []).append(_decode_result(path, channel, record))
         elif isinstance(record, Channel):
@@ -701,16 +789,27 @@ def _scan(path: str, *, signals: bool = True, results: bool = True, stop_after: 
     return contents
 
 
-def _decode_block(path: str, topic: str, message: Message) -> tuple[int, list[float], list[float]]:
+def _numbers(values: list[Any]) -> bool:
+    """Every entry a JSON number (not a bool, a string, a list or null)."""
+    return all(type(v) is float or type(v) is int for v in values)
+
+
+def _decode_block(path: str, topic: str, message: Message) -> _Block:
+    ok = False
     try:
         block = json.loads(message.data)
-        first, t, values = block["first_sample"], block["t_s"], block["values"]
-        ok = isinstance(first, int) and isinstance(t, list) and isinstance(values, list) and len(t) == len(values)
-    except (ValueError, TypeError, KeyError):
+        if isinstance(block, dict):
+            first, t, values = block.get("first_sample"), block.get("t_s"), block.get("values")
+            ok = (type(first) is int and first >= 0 and isinstance(t, list) and isinstance(values, list)
+                  and len(t) == len(values) and _numbers(t) and _numbers(values))
+    except (ValueError, RecursionError):  # not JSON (UnicodeDecodeError is a ValueError), or nested absurdly deep
         ok = False
-    if not ok:
-        raise LogFormatError(f"{path}: corrupt MCAP file (bad sample block on {topic}, sequence {message.sequence})")
-    return first, t, values
+    if ok:
+        try:
+            return first, np.array(t, dtype=np.float64), np.array(values, dtype=np.float64)
+        except OverflowError:  # an integer beyond the float range
+            ok = False
+    raise LogFormatError(f"{path}: corrupt MCAP file (bad sample block on {topic}, sequence {message.sequence})")
 
 
 def _decode_result(path: str, channel: Channel, message: Message) -> dict[str, Any]:
@@ -718,7 +817,7 @@ def _decode_result(path: str, channel: Channel, message: Message) -> dict[str, A
         raise LogFormatError(f"{path}: topic {channel.topic} is not JSON ({channel.message_encoding!r})")
     try:
         payload = json.loads(message.data)
-    except ValueError as err:
+    except (ValueError, RecursionError) as err:
         raise LogFormatError(f"{path}: corrupt MCAP file (bad JSON on {channel.topic})") from err
     if not isinstance(payload, dict):
         raise LogFormatError(f"{path}: message on {channel.topic} is not a JSON object")
@@ -743,18 +842,35 @@ def _header_info(path: str, contents: _Contents) -> dict[str, Any]:
         if start_time.tzinfo is None:
             raise ValueError("start_time without a time zone")
         expected = info.get("expected_samples")
+        rate = float(info["sample_rate_hz"])
+        if not (math.isfinite(rate) and rate > 0):
+            raise ValueError(f"sample_rate_hz {info['sample_rate_hz']!r}")
+        signals = json.loads(info["signals"])
+        if not (isinstance(signals, list) and all(isinstance(x, str) for x in signals)):
+            raise ValueError("signals is not a list of names")
         return {
-            "sample_rate_hz": float(info["sample_rate_hz"]),
+            "sample_rate_hz": rate,
             "start_time": start_time,
-            "drive": DriveInfo.from_dict(json.loads(info["drive"])),
-            "signals": [str(s) for s in json.loads(info["signals"])],
+            "drive": _drive_info(json.loads(info["drive"])),
+            "signals": signals,
             "expected_samples": int(expected) if expected is not None else None,
         }
-    except (KeyError, ValueError, TypeError) as err:
+    except (KeyError, ValueError, TypeError, RecursionError) as err:
         raise LogFormatError(f"{path}: invalid 'recording' metadata ({type(err).__name__}: {err})") from err
 
 
-_Block = tuple[int, list[float], list[float]]
+def _drive_info(data: Any) -> DriveInfo:
+    """The ``drive`` of the recording metadata, every field of its type (TypeError otherwise)."""
+    if not isinstance(data, dict):
+        raise TypeError(f"drive is a {type(data).__name__}, not an object")
+    info = DriveInfo.from_dict(data)
+    for name, value in info.to_dict().items():
+        if name == "rated_torque_nm":
+            if value is not None and not (type(value) in (int, float) and math.isfinite(value) and value > 0):
+                raise TypeError(f"drive.rated_torque_nm is {value!r}")
+        elif not isinstance(value, str):
+            raise TypeError(f"drive.{name} is a {type(value).__name__}, not text")
+    return info
 
 
 def _concat(path: str, name: str, blocks: list[_Block]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -765,10 +881,9 @@ def _concat(path: str, name: str, blocks: list[_Block]) -> tuple[NDArray[np.floa
                 f"{path}: corrupt MCAP file (/{name} jumps from sample {expected_first} to {first})"
             )
         expected_first += len(t)
-    n = expected_first
-    t = np.fromiter(itertools.chain.from_iterable(b[1] for b in blocks), dtype=np.float64, count=n)
-    v = np.fromiter(itertools.chain.from_iterable(b[2] for b in blocks), dtype=np.float64, count=n)
-    return t, v
+    if not blocks:
+        return np.zeros(0), np.zeros(0)
+    return np.concatenate([b[1] for b in blocks]), np.concatenate([b[2] for b in blocks])
 
 
 def _samples_text(n: int) -> str:
@@ -800,10 +915,14 @@ def read_recording(path: str | os.PathLike[str]) -> Recording:
     end = contents.metadata.get("recording_end", {})
     expected = info["expected_samples"]
     if "sample_count" in end:
-        expected = int(end["sample_count"])
+        try:
+            expected = int(end["sample_count"])
+        except ValueError as err:
+            raise LogFormatError(f"{p}: invalid 'recording_end' metadata (sample_count {end['sample_count']!r})") from err
     notes: list[str] = []
+    status = str(end.get("status", "complete"))
     if contents.complete:
-        if len(set(lengths.values())) > 1:
+        if len(set(lengths.values())) > 1 and (status == "complete" or expected is None or n != expected):
             raise LogFormatError(f"{p}: corrupt MCAP file (signals of different lengths: {lengths})")
         if expected is not None and n != expected:
             raise LogFormatError(f"{p}: corrupt MCAP file ({n} samples, the log says {expected})")
@@ -812,7 +931,6 @@ def read_recording(path: str | os.PathLike[str]) -> Recording:
             raise LogFormatError(
                 f"{p}: corrupt MCAP file ({contents.n_messages} messages, the summary says {stats.message_count})"
             )
-        status = end.get("status", "complete")
         planned = info["expected_samples"]
         if status != "complete":
             notes.append(f"{p}: the recording was {status}; read {_samples_text(n)}")
@@ -883,8 +1001,7 @@ def append_result(
     :raises LogFormatError: the file is not a complete MCAP file (no footer) or is corrupt.
     :raises ValueError: bad topic, or a payload that is not JSON-serialisable.
     """
-    from mcap.records import Attachment, Chunk, DataEnd, Header, MessageIndex
-    from mcap.stream_reader import breakup_chunk
+    from mcap.records import Attachment, DataEnd, Header, MessageIndex
 
     p = os.fspath(path)
     if not (isinstance(topic, str) and topic.startswith("/") and len(topic) > 1):
@@ -950,11 +1067,7 @@ def append_result(
                 elif writer is None:
                     raise LogFormatError(f"{p}: corrupt MCAP file (first record is not a header)")
                 elif isinstance(record, Chunk):
-                    try:
-                        inner = breakup_chunk(record, validate_crc=True)
-                    except (McapError, ValueError, zstandard.ZstdError) as err:
-                        raise LogFormatError(f"{p}: corrupt MCAP file ({err})") from err
-                    for r in inner:
+                    for r in open_chunk(p, record):
                         copy(r)
                     writer.flush()  # type: ignore[attr-defined]  # keep the chunk boundaries
                 elif isinstance(record, (Schema, Channel, Message)):  # unchunked files
@@ -988,8 +1101,6 @@ def append_result(
 
 def _compression_of(data: bytes, framing: _Framing) -> CompressionType:
     """The compression of the first chunk of a file (zstd when it has none)."""
-    from mcap.records import Chunk
-
     reader = StreamReader(io.BytesIO(data[len(_MAGIC) : framing.stop]), skip_magic=True, emit_chunks=True)
     try:
         for record in reader.records:
@@ -1012,7 +1123,7 @@ def read_config(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise LogFormatError(f"{p}: not a drive-commission recording (no 'config' metadata)")
     try:
         return {key: json.loads(value) for key, value in stored.items()}
-    except ValueError as err:
+    except (ValueError, RecursionError) as err:
         raise LogFormatError(f"{p}: invalid 'config' metadata ({err})") from err
 
 

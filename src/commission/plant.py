@@ -12,70 +12,39 @@ Model (METHOD.md, "Plant"), motor side m and load side l::
     J_l·ẍ_l = τ_s − B_l·ẋ_l − F_cl(ẋ_l)
     x_s = x_m − x_l,   y = dz(x_s; ε),   τ_s = K·y + D·ẏ
 
-with the dead zone dz(x; ε) = x − ε (x > ε), 0 (|x| ≤ ε), x + ε (x < −ε), and
-ẏ = ẋ_m − ẋ_l in contact, 0 in the gap, so that τ_s = 0 in the gap. The
-optional Coulomb friction is a smooth sign, F_c(v) = F·tanh(v / v_scale), so
-the right-hand side stays continuous inside each mode. Optional extras: a
-first-order current-loop lag between the torque reference and the motor
-torque, white torque noise, and position encoders of finite resolution.
+with dz(x; ε) = x − ε (x > ε), 0 (|x| ≤ ε), x + ε (x < −ε), and ẏ = ẋ_m − ẋ_l in contact, 0 in
+the gap. Coulomb friction is a smooth sign, F_c(v) = F·tanh(v / v_scale), so the right-hand
+side stays continuous inside each mode. Optional: a first-order current loop
+dτ/dt = ω_c·(τ_ref − τ) (its output across a held sample is known in closed form), a
+computation delay (the reference of tick k reaches the current loop at tick k + d), white
+torque noise added after the current loop (``numpy.random.default_rng(seed).normal(0, σ, N)``,
+one value per sample, held, drawn only when σ > 0) and encoders of finite resolution.
 
 Sample timing (the identifier relies on it). At tick k, t = k·Ts, the drive
 
-1. latches the encoders: ``position[k] = q(x(k·Ts))`` with
-   q(x) = round(x / step)·step, step = 2π / 2**bits;
-2. computes ``velocity[k] = (position[k] − position[k−1]) / Ts``, where
-   position[−1] is the (quantised) position at reset;
-3. applies ``torque_ref[k]`` held constant (zero-order hold) over
-   [k·Ts, (k+1)·Ts).
+1. latches the encoders: ``position[k] = q(x(k·Ts))``, q(x) = round(x / step)·step,
+   step = 2π / 2**bits;
+2. computes ``velocity[k] = (position[k] − position[k−1]) / Ts`` (position[−1]: at reset);
+3. applies ``torque_ref[k]`` held constant (zero-order hold) over [k·Ts, (k+1)·Ts).
 
-So velocity[k] depends on the torque up to k−1 only: the one-sample pure
-delay of METHOD.md ("Traps"). Exactly, the discrete transfer function from
-torque samples to velocity samples is (1 − z⁻¹)/Ts · ZOH{P(s)/s}, P = V_m/T.
-The current loop (if any) is dτ/dt = ω_c·(τ_ref − τ), ω_c = 2π·bandwidth;
-across a held sample its output is known in closed form and is evaluated
-exactly wherever the integrator needs the torque. Noise ``n[k]`` is added to the
-motor torque after the current loop and held over the sample like the
-reference; it is drawn as ``numpy.random.default_rng(seed).normal(0, σ, N)``,
-one value per sample, in sample order, and only when σ > 0.
+So velocity[k] depends on the torque up to k−1 only: the one-sample delay of METHOD.md.
 
-Integration. Inside one mode (contact positive, gap, contact negative) the
-dynamics are linear, or smooth with Coulomb friction, but τ_s jumps by D·ẏ
-when the gears touch or separate, so an integrator that steps across a mode
-switch loses its order (METHOD.md measured ~0.2 rad/s errors for one fixed
-step per sample). Each sample is therefore split into ``SUBSTEPS_PER_SAMPLE``
-classical RK4 sub-steps with the mode held fixed, and after every sub-step
-the twist is checked against the boundary |x_s| = ε, both at the end of the
-sub-step and, via the cubic Hermite interpolant of x_s (dense output), in its
-interior, so that grazing contacts are caught too. A crossing is located by
-Illinois regula falsi on the length of an RK4 step from the sub-step's start
-(the fixed-mode solution is smooth in that length), the step is taken up to
-the crossing, the mode switched and the rest of the sub-step integrated in the
-new mode. The state carries the twist x_s itself rather than x_l, so that the
-distance to the boundary keeps full precision when the shaft has turned
-hundreds of radians. Coulomb friction near zero velocity is stiff
-(rate F / (v_scale·J)); there the sub-step is split further so that the
-rate times the step stays ≤ 1.
+Integration. τ_s jumps by D·ẏ when the gears touch or separate, so an integrator stepping
+across a mode switch loses its order. Each sample is split into ``SUBSTEPS_PER_SAMPLE`` (or
+more, for stiff plants and fast current loops) RK4 sub-steps with the mode held fixed; after
+each, the twist is checked against |x_s| = ε at the end and, via its cubic Hermite
+interpolant, inside (grazing contacts). A crossing is located by Illinois regula falsi on the
+length of an RK4 step from the sub-step's start, the step taken up to it, the mode switched
+and the rest of the sub-step integrated in the new mode. The state carries the twist x_s, not
+x_l, so that the distance to the boundary keeps full precision after hundreds of radians.
+Near zero velocity Coulomb friction is stiff (rate F / (v_scale·J)): the sub-step is split
+further there. Impact-rich, lightly damped runs can be chaotic (any two step sizes part after
+many impacts): that is the model's physics, and it bounds what a whole-record output-error
+comparison can mean on such plants.
 
-The sub-step count (4) was chosen by measurement (``bench/bench_plant.py``):
-on METHOD.md's chirp with ε = 0.4°, the true sampled velocities differ from a
-320-sub-step solution by 2e-9 rad/s on the reference plant and by 1e-6 rad/s
-on a 292 Hz plant (K ×10, J_l = 0.8e-4), 3 to 6 orders of magnitude below the
-3e-3 rad/s velocity quantum of a 24-bit encoder; 8 sub-steps would double the
-cost for no visible gain. Switching modes at sub-step boundaries without
-locating the crossing costs 2e-3 to 0.1 rad/s instead. A plant whose fastest
-contact-mode rate |λ| makes |λ|·h exceed ``MAX_RATE_STEP``, or a current loop
-with ω_c·h above ``MAX_LAG_STEP``, gets more sub-steps automatically.
-Note that impact-rich, stiff, lightly damped runs can be chaotic: on the
-292 Hz plant the chirp's impacts around t = 5 s make any two step sizes (even
-160 and 320 sub-steps) part by ~0.1 rad/s afterwards. That is the physics of
-the model, not an integration error, but it bounds what a whole-record
-output-error comparison can mean on such plants.
-
-The per-sample loop is a module-level numba function (``cache=True`` needs
-module-level functions); chunked and whole-array calls give bitwise-identical
-results because all the loop's memory (continuous state, contact mode,
-previous encoder positions, PI integrator, current-loop state, rng stream)
-lives in the ``Plant`` object between calls.
+The per-sample loop is a module-level numba function (``cache=True`` needs that); chunked and
+whole-array calls give bitwise-identical results because all the loop's memory lives in the
+``Plant`` object between calls.
 """
 
 from __future__ import annotations
@@ -88,11 +57,12 @@ from typing import Annotated, Any, NamedTuple
 import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
-from pydantic import BaseModel, ConfigDict, Field, validate_call
+from pydantic import BaseModel, ConfigDict, Field, model_validator, validate_call
 
 from .ident.twomass import TwoMassParameters
 
 __all__ = [
+    "MAX_DELAY_SAMPLES",
     "MAX_LAG_STEP",
     "MAX_RATE_STEP",
     "SUBSTEPS_PER_SAMPLE",
@@ -109,19 +79,24 @@ __all__ = [
     "twist",
 ]
 
-#: RK4 sub-steps per sample (the minimum; stiffer plants get more, see MAX_RATE_STEP).
+#: RK4 sub-steps per sample (the minimum; stiffer plants get more, see MAX_RATE_STEP): errors
+#: orders of magnitude below a 24-bit encoder's velocity quantum (bench/bench_plant.py; figures in
+#: bench/results/RESULTS.md).
 SUBSTEPS_PER_SAMPLE = 4
-#: Largest |λ|·h allowed for the fastest contact-mode eigenvalue λ of the linear plant
-#: (h = Ts / sub-steps). The reference plant has |λ|·h = 0.013 at 4 sub-steps, a 290 Hz
-#: resonance 0.057: measured errors 1e-9 and 1e-7 rad/s on the chirp (bench).
+#: Largest |λ|·h for the fastest contact-mode eigenvalue λ of the linear plant (h = Ts / sub-steps).
 MAX_RATE_STEP = 0.06
-#: Largest ω_c·h for the current-loop lag: its exponential enters RK4 as a forcing term;
-#: measured at ω_c·h ≈ 0.5 (3 and 5 kHz): ≤ 2e-6 relative, 4e-4° from 100 Hz to 1 kHz.
+#: Largest ω_c·h for the current-loop lag, whose exponential enters RK4 as a forcing term.
 MAX_LAG_STEP = 0.5
 #: Largest rate·h in the stiff zone of the smooth-sign Coulomb friction, rate = F/(v_s·J).
-#: Measured on the chirp with F = 0.02 N·m per side: 1.6e-5 rad/s from a 4×-finer solution
-#: at 1.0 (2e-4 at 2.0). Cost grows with F/v_s: see the Plant docstring.
 _MAX_COULOMB_STEP = 1.0
+#: Fastest contact-mode rate |λ| [1/s] a plant may have (a 20 kHz mode): beyond any servo axis, and
+#: the most the simulation resolves at an affordable cost (~250 sub-steps per 8 kHz sample).
+MAX_MODE_RATE = 2.0 * math.pi * 20e3
+#: Largest stiffness F/(v_s·J) [1/s] of the smooth-sign Coulomb friction (cost grows with it, see Plant).
+MAX_COULOMB_RATE = 1e6
+#: Most RK4 sub-steps per sample a Plant takes on: more is a plant the sample rate cannot resolve
+#: (the compiled loop would run for hours, deaf to Ctrl-C).
+MAX_SUBSTEPS_PER_SAMPLE = 1024
 #: Mode changes located per sub-step before event location gives up for that sub-step
 #: (guards against chattering at a grazing contact; never reached in normal use).
 _MAX_EVENTS_PER_SUBSTEP = 16
@@ -130,24 +105,30 @@ _EVENT_TOL_RAD = 1e-13
 
 
 class PlantParameters(BaseModel):
-    """Physical parameters of the simulated axis (SI units; defaults: METHOD.md reference plant)."""
+    """Physical parameters of the simulated axis (SI units; defaults: METHOD.md reference plant).
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    Values must be finite and plausible for a servo axis: inertias from 1e-9 to 1e4 kg·m², the
+    fastest mode of the coupled axis below 20 kHz (:data:`MAX_MODE_RATE`) and the Coulomb
+    friction's smooth sign no stiffer than :data:`MAX_COULOMB_RATE`; anything else would not
+    be a machine, and could keep the compiled simulation busy for hours.
+    """
 
-    J_m: float = Field(4.78e-4, gt=0, description="Motor-side inertia [kg·m²].")
-    J_l: float = Field(1.92e-4, gt=0, description="Load-side inertia [kg·m²].")
-    B_m: float = Field(0.84e-2, ge=0, description="Motor-side viscous friction [N·m·s/rad].")
-    B_l: float = Field(0.53e-2, ge=0, description="Load-side viscous friction [N·m·s/rad].")
-    K: float = Field(23.10, gt=0, description="Shaft stiffness [N·m/rad].")
-    D: float = Field(1.54e-2, ge=0, description="Shaft damping [N·m·s/rad].")
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    J_m: float = Field(4.78e-4, ge=1e-9, le=1e4, description="Motor-side inertia [kg·m²].")
+    J_l: float = Field(1.92e-4, ge=1e-9, le=1e4, description="Load-side inertia [kg·m²].")
+    B_m: float = Field(0.84e-2, ge=0, le=1e6, description="Motor-side viscous friction [N·m·s/rad].")
+    B_l: float = Field(0.53e-2, ge=0, le=1e6, description="Load-side viscous friction [N·m·s/rad].")
+    K: float = Field(23.10, gt=0, le=1e9, description="Shaft stiffness [N·m/rad].")
+    D: float = Field(1.54e-2, ge=0, le=1e6, description="Shaft damping [N·m·s/rad].")
     epsilon_deg: float = Field(
         0.40, ge=0, lt=90, description="Backlash half-width ε [deg]; 0 = no backlash."
     )
     coulomb_motor_nm: float = Field(
-        0.0, ge=0, description="Coulomb friction level on the motor side [N·m]."
+        0.0, ge=0, le=1e5, description="Coulomb friction level on the motor side [N·m]."
     )
     coulomb_load_nm: float = Field(
-        0.0, ge=0, description="Coulomb friction level on the load side [N·m]."
+        0.0, ge=0, le=1e5, description="Coulomb friction level on the load side [N·m]."
     )
     coulomb_velocity_scale_rad_s: float = Field(
         1e-3,
@@ -157,12 +138,21 @@ class PlantParameters(BaseModel):
     current_loop_bandwidth_hz: float | None = Field(
         None,
         gt=0,
+        le=1e6,
         description="Bandwidth of a first-order lag from torque reference to motor torque [Hz]; "
         "None = ideal current loop.",
+    )
+    delay_samples: int = Field(
+        0,
+        ge=0,
+        le=8,
+        description="Whole samples between a torque reference and the current loop's input: the "
+        "drive's computation and transport delay beyond the zero-order hold's own sample.",
     )
     torque_noise_nm: float = Field(
         0.0,
         ge=0,
+        le=1e5,
         description="Standard deviation of white noise added to the motor torque, one value "
         "per sample, held over the sample [N·m].",
     )
@@ -172,7 +162,24 @@ class PlantParameters(BaseModel):
     encoder_bits_load: int = Field(
         24, ge=1, le=32, description="Load encoder resolution: 2**bits counts per revolution."
     )
-    seed: int = Field(0, ge=0, description="Seed of the torque-noise generator.")
+    seed: int = Field(0, ge=0, lt=2**63, description="Seed of the torque-noise generator.")
+
+    @model_validator(mode="after")
+    def _plausible(self) -> PlantParameters:
+        rate = _fastest_contact_rate(self)
+        if not rate <= MAX_MODE_RATE:
+            raise ValueError(
+                f"the axis's fastest mode (J_m, J_l, B_m, B_l, K, D) is at {rate / (2 * math.pi):.4g} Hz, "
+                f"above {MAX_MODE_RATE / (2 * math.pi):.4g} Hz: not a servo axis"
+            )
+        for side, force, inertia in (("motor", self.coulomb_motor_nm, self.J_m), ("load", self.coulomb_load_nm, self.J_l)):
+            stiffness = force / (self.coulomb_velocity_scale_rad_s * inertia)
+            if stiffness > MAX_COULOMB_RATE:
+                raise ValueError(
+                    f"coulomb_{side}_nm / (coulomb_velocity_scale_rad_s · J) is {stiffness:.3g} 1/s, above "
+                    f"{MAX_COULOMB_RATE:.3g} 1/s: raise coulomb_velocity_scale_rad_s or lower the friction"
+                )
+        return self
 
     @property
     def epsilon_rad(self) -> float:
@@ -195,17 +202,11 @@ class PlantParameters(BaseModel):
 class PlantState:
     """True continuous state of the plant at a sample instant."""
 
-    x_m: float
-    """Motor position [rad]."""
-    v_m: float
-    """Motor velocity [rad/s]."""
-    x_l: float
-    """Load position [rad]."""
-    v_l: float
-    """Load velocity [rad/s]."""
-    applied_torque: float
-    """Motor torque produced by the current loop at this instant, without noise [N·m]
-    (ideal current loop: the last reference, held)."""
+    x_m: float  # motor position [rad]
+    v_m: float  # motor velocity [rad/s]
+    x_l: float  # load position [rad]
+    v_l: float  # load velocity [rad/s]
+    applied_torque: float  # the current loop's output now, without noise (ideal: the reference) [N·m]
 
 
 @dataclass(frozen=True, eq=False)
@@ -220,20 +221,13 @@ class PlantSnapshot:
 class PlantResponse:
     """Sampled signals of one run; every array has shape (N,) and dtype float64."""
 
-    motor_position: NDArray[np.float64]
-    """Motor position [rad], quantised by the motor encoder, latched at t = k·Ts."""
-    motor_velocity: NDArray[np.float64]
-    """Motor velocity [rad/s] as a drive reports it: (q[k] − q[k−1]) / Ts."""
-    load_position: NDArray[np.float64]
-    """Load position [rad], quantised by the load encoder."""
-    load_velocity: NDArray[np.float64]
-    """Load velocity [rad/s], (q[k] − q[k−1]) / Ts of the load encoder."""
-    torque_ref: NDArray[np.float64]
-    """Torque reference applied over [k·Ts, (k+1)·Ts) [N·m] (velocity mode: the PI output)."""
-    shaft_torque: NDArray[np.float64]
-    """True shaft torque τ_s at t = k·Ts [N·m] (diagnostics)."""
-    twist: NDArray[np.float64]
-    """True twist x_m − x_l at t = k·Ts [rad] (diagnostics)."""
+    motor_position: NDArray[np.float64]  # [rad], quantised by the motor encoder at t = k·Ts
+    motor_velocity: NDArray[np.float64]  # [rad/s] as a drive reports it: (q[k] − q[k−1]) / Ts
+    load_position: NDArray[np.float64]  # [rad], quantised by the load encoder
+    load_velocity: NDArray[np.float64]  # [rad/s], (q[k] − q[k−1]) / Ts of the load encoder
+    torque_ref: NDArray[np.float64]  # applied over [k·Ts, (k+1)·Ts) [N·m] (velocity mode: PI output)
+    shaft_torque: NDArray[np.float64]  # true τ_s at t = k·Ts [N·m] (diagnostics)
+    twist: NDArray[np.float64]  # true x_m − x_l at t = k·Ts [rad] (diagnostics)
 
 
 class PlantKernel(NamedTuple):
@@ -253,23 +247,26 @@ class PlantKernel(NamedTuple):
     coulomb_motor_nm: float
     coulomb_load_nm: float
     coulomb_velocity_scale_rad_s: float
-    current_loop_rad_s: float
-    """ω_c = 2π·bandwidth of the current loop [rad/s]; 0 = ideal."""
+    current_loop_rad_s: float  # ω_c = 2π·bandwidth [rad/s]; 0 = ideal
+    delay_samples: int  # whole samples between a torque reference and the current loop's input
     encoder_step_motor_rad: float
     encoder_step_load_rad: float
     inv_J_m: float
     inv_J_l: float
     inv_velocity_scale: float
-    substeps: int
-    """RK4 sub-steps per sample."""
+    substeps: int  # RK4 sub-steps per sample
     sample_time_s: float
 
 
 # Layout of the loop's memory (one float64 vector so that numba can update it in place):
 # x_m, v_m, x_s (twist), v_l, applied torque, contact mode, last latched encoder positions
-# (motor, load), PI integrator. Loops compiled elsewhere use the accessors below.
+# (motor, load), PI integrator, then the computation delay's line of torque references (the
+# newest first). Loops compiled elsewhere use the accessors below.
 _XM, _VM, _XS, _VL, _TC, _MODE, _QM, _QL, _INTEG = range(9)
-_STATE_SIZE = 9
+#: Longest computation delay the plant holds [samples] (PlantParameters.delay_samples ≤ this).
+MAX_DELAY_SAMPLES = 8
+_DELAY0 = 9
+_STATE_SIZE = _DELAY0 + MAX_DELAY_SAMPLES
 
 
 @njit(cache=True)
@@ -553,10 +550,25 @@ def advance_sample(s: NDArray[np.float64], u: float, noise: float, p: PlantKerne
     (:mod:`commission.tuning.closedloop`): the encoders are latched by the caller
     (:func:`quantise` of :func:`motor_position` / :func:`load_position`) before u is computed.
     """
+    u = _delayed(s, u, p)
     # Current loop: torque = u + c·exp(−ω_c·t) over the sample, c = deviation at its start.
     c = s[_TC] - u if p.current_loop_rad_s > 0.0 else 0.0
     c = _integrate_sample(s, u + noise, c, p, True)
     s[_TC] = u + c
+
+
+@njit(cache=True)
+def _delayed(s: NDArray[np.float64], u: float, p: PlantKernel) -> float:
+    """The torque reference that reaches the current loop now: ``u`` itself without a
+    computation delay, else the one computed ``delay_samples`` ticks ago (``u`` joins the line)."""
+    d = p.delay_samples
+    if d <= 0:
+        return u
+    out = s[_DELAY0 + d - 1]
+    for i in range(d - 1, 0, -1):
+        s[_DELAY0 + i] = s[_DELAY0 + i - 1]
+    s[_DELAY0] = u
+    return out
 
 
 @njit(cache=True)
@@ -621,13 +633,15 @@ def _simulate(
         if locate_events:
             advance_sample(s, u, noise[k], p)
         else:  # comparison mode only (bench): mode switches at sub-step boundaries
-            c = s[_TC] - u if lag else 0.0
-            c = _integrate_sample(s, u + noise[k], c, p, False)
-            s[_TC] = u + c
+            ud = _delayed(s, u, p)
+            c = s[_TC] - ud if lag else 0.0
+            c = _integrate_sample(s, ud + noise[k], c, p, False)
+            s[_TC] = ud + c
 
 
-def _fastest_contact_rate(params: PlantParameters) -> float:
-    """Largest |eigenvalue| [1/s] of the linear two-mass plant in contact."""
+def _fastest_contact_rate(params: Any) -> float:
+    """Largest |eigenvalue| [1/s] of the linear two-mass plant in contact (PlantParameters, or
+    anything with its J_m, J_l, B_m, B_l, K, D)."""
     a = np.array(
         [
             [-(params.B_m + params.D) / params.J_m, params.D / params.J_m, -params.K / params.J_m],
@@ -642,13 +656,10 @@ class Plant:
     """The simulated axis, advanced sample by sample in cyclic synchronous torque or velocity mode.
 
     Runs continue from the current state, so an experiment may be fed in chunks:
-    whole-array and chunked calls give identical results. Cost: ~20 ms of CPU per
-    80,000 samples on the reference plant; each call costs ~15–25 µs on top, so a
-    drive model that feeds one sample per call runs only ~5–10× faster than real time.
-    Strong Coulomb friction is expensive near zero velocity, where each sub-step is
-    split into ≈ F·h/(v_s·J) pieces: on the chirp, F = 0.02 N·m per side costs ~1.7×
-    the frictionless time, 0.05 N·m ~6×, 0.2 N·m (stuck most of the time) ~100×; a
-    larger ``coulomb_velocity_scale_rad_s`` makes it cheaper.
+    whole-array and chunked calls give identical results. Each call has a fixed cost on
+    top of the samples, so feed arrays rather than one sample per call. Strong Coulomb
+    friction is expensive near zero velocity, where each sub-step is split into
+    ≈ F·h/(v_s·J) pieces; a larger ``coulomb_velocity_scale_rad_s`` makes it cheaper.
     """
 
     @validate_call(config=ConfigDict(arbitrary_types_allowed=True))
@@ -675,6 +686,11 @@ class Plant:
                 math.ceil(rate * self.sample_time_s / MAX_RATE_STEP),
                 math.ceil(wc * self.sample_time_s / MAX_LAG_STEP),
             )
+        if substeps_per_sample > MAX_SUBSTEPS_PER_SAMPLE:
+            raise ValueError(
+                f"the plant needs {substeps_per_sample} sub-steps per sample at {self.sample_rate_hz:g} Hz "
+                f"(at most {MAX_SUBSTEPS_PER_SAMPLE}): its modes are too fast for this sample rate"
+            )
         self.substeps_per_sample = int(substeps_per_sample)
         self._kernel = PlantKernel(
             J_m=params.J_m,
@@ -688,6 +704,7 @@ class Plant:
             coulomb_load_nm=params.coulomb_load_nm,
             coulomb_velocity_scale_rad_s=params.coulomb_velocity_scale_rad_s,
             current_loop_rad_s=0.0 if bw is None else 2.0 * math.pi * bw,
+            delay_samples=int(params.delay_samples),
             encoder_step_motor_rad=2.0 * math.pi / 2.0**params.encoder_bits_motor,
             encoder_step_load_rad=2.0 * math.pi / 2.0**params.encoder_bits_load,
             inv_J_m=1.0 / params.J_m,

@@ -32,8 +32,38 @@ SIGNAL_UNITS: Mapping[str, str] = MappingProxyType(
 #: Signals every Recording has; the others are optional.
 REQUIRED_SIGNALS: tuple[str, ...] = ("torque_ref", "motor_velocity")
 
+#: Most samples a recording read from a file may hold (ten minutes at 8 kHz): the longest experiment a
+#: config allows, and a bound on the memory a replayed log can take.
+MAX_SAMPLES = 4_800_000
+
 #: Relative tolerance on sample spacing for a record to count as uniformly sampled.
 UNIFORM_RTOL = 1e-6
+#: Metadata key of the samples the link lost: their values in the arrays are interpolated (positions,
+#: velocities) or the intended reference (torque), and a time-domain fit should leave them out.
+#: The value lists sample indices and inclusive ranges, ``"17,40-43"`` (see :func:`encode_samples`).
+LOST_SAMPLES_KEY = "lost_samples"
+
+
+def encode_samples(mask: ArrayLike) -> str:
+    """Sample indices where ``mask`` is true, as ``"17,40-43"`` (empty string: none)."""
+    edges = np.diff(np.concatenate(([0], np.asarray(mask, dtype=np.int8), [0])))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
+    return ",".join(str(a) if a == b else f"{a}-{b}" for a, b in zip(starts.tolist(), stops.tolist()))
+
+
+def decode_samples(text: str, n: int) -> NDArray[np.bool_]:
+    """The boolean mask of ``n`` samples that :func:`encode_samples` wrote (indices ≥ n ignored)."""
+    mask = np.zeros(n, dtype=bool)
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        try:
+            first, _, last = part.partition("-")
+            a, b = int(first), int(last or first)
+        except ValueError:
+            raise RecordingError(f"metadata '{LOST_SAMPLES_KEY}': '{part}' is not an index or a range") from None
+        if a < 0 or b < a:
+            raise RecordingError(f"metadata '{LOST_SAMPLES_KEY}': bad range '{part}'")
+        mask[a : b + 1] = True
+    return mask
 
 
 @dataclass(frozen=True)
@@ -82,8 +112,9 @@ class Recording:
     All arrays have shape ``(N,)`` and dtype float64, are read-only and finite.
 
     :param t: sample times since the start of the experiment [s], strictly increasing.
-        Uniform (``n / sample_rate_hz``) for drive traces; the actual sample times for
-        host-streamed experiments.
+        Uniform (``n / sample_rate_hz``) for drive traces and for host-streamed experiments
+        on the drive's clock (cycles counted by the drive); the actual sample times where the
+        host kept time (records from older versions, CSV files).
     :param sample_rate_hz: nominal sample rate [Hz].
     :param torque_ref: torque reference sent to the current loop [N·m].
     :param motor_velocity: motor velocity as the drive reports it [rad/s].
@@ -92,7 +123,8 @@ class Recording:
     :param load_velocity: load-side velocity [rad/s], optional.
     :param start_time: wall-clock time of sample 0 (timezone-aware, UTC).
     :param drive: identity of the drive.
-    :param metadata: free-form strings (source file, config digest, notes).
+    :param metadata: free-form strings (source file, config digest, notes). ``lost_samples``
+        (:data:`LOST_SAMPLES_KEY`) marks samples a streamed link lost: see :attr:`lost_mask`.
     """
 
     t: NDArray[np.float64]
@@ -158,6 +190,11 @@ class Recording:
         """True when sample times are n / sample_rate_hz within UNIFORM_RTOL of a period."""
         ideal = self.t[0] + np.arange(len(self)) / self.sample_rate_hz
         return bool(np.max(np.abs(self.t - ideal)) <= UNIFORM_RTOL / self.sample_rate_hz * len(self))
+
+    @property
+    def lost_mask(self) -> NDArray[np.bool_]:
+        """True at the samples the link lost (metadata ``lost_samples``); all false when none were."""
+        return decode_samples(self.metadata.get(LOST_SAMPLES_KEY, ""), len(self))
 
     @property
     def has_load_encoder(self) -> bool:

@@ -12,25 +12,16 @@ One loop model: the open-loop Bode plot and every margin on the page come from
 used, whose margins are controller.json's. The plant a verification ran on comes from the run
 (``true_plant``: the simulator's machine of a ``--sim`` run, or of a replayed log that says so).
 
-Figures are inline SVG drawn by :mod:`commission.svgplot`, with one inline script that zooms
-the x axis of line plots: no external script, stylesheet link or image file, so the page opens
-offline on any laptop. Each is a ``<figure class="plot" id="fig-…">`` holding one ``<svg>``. What the identification section shows is *recomputed* here from the
-Recording and the Identification with the identifier's public functions (the Identification
-holds numbers, not curves):
-
-* FRD of τ_ref → v_m (:func:`commission.ident.frd.estimate_frd`), and the FRD after the
-  backlash's effect is removed — the paper's step 6, output form:
-  v_lin = v_m − (v̂_m(ε̂) − v̂_m(0)) with the identified parameters
-  (:func:`commission.ident.backlash.simulate_deadzone`);
-* the fitted model and, for simulated runs, the true plant, both as sampled responses
-  H(j2πf)·e^{−j2πf·T_d}·sinc²(f/f_s) (one-sample delay, zero-order hold and the drive's
-  backward-difference velocity), so that they lie on the measured FRD;
-* the measured motor velocity against the dead-zone simulation with ε̂ (and with ε = 0 for
-  contrast), over the whole run and zoomed on the gap traversal where backlash shows most;
-* the output error RMS(v_m − v̂_m(ε)) over ε with the other parameters at their identified
-  values (a profile computed here, one simulation per ε), and the identifier's own search
-  history when its stage detail carries one (see :func:`search_history`);
-* the step-5 FRD error per iteration.
+Figures are inline SVG (:mod:`commission.svgplot`, one ``<figure class="plot" id="fig-…">`` each)
+with one inline zoom script, so the page opens offline on any laptop. The identification
+section's curves are *recomputed* here from the Recording and the Identification (which holds
+numbers, not curves) with the identifier's public functions: the measured FRD and the FRD with
+the backlash's effect removed (the paper's step 6, output form, v_m − (v̂_m(ε̂) − v̂_m(0))); the
+fitted model and, for simulated runs, the true plant as sampled responses
+H(j2πf)·e^{−j2πf·T_d}·sinc²(f/f_s), so that they lie on the measured FRD; the measured motor
+velocity against the dead-zone simulation with ε̂ and with ε = 0, whole and zoomed on the gap
+traversal; the output-error profile over ε with the identifier's own search history
+(:func:`search_history`); the step-5 FRD error per iteration.
 
 Public API: :func:`write_report`, :func:`render_report` (the HTML text), :func:`search_history`.
 """
@@ -77,15 +68,13 @@ _PROFILE_POINTS = 21
 _PROFILE_NEAR = 8
 
 
-# ---------------------------------------------------------------------------------------------
-# inputs
-# ---------------------------------------------------------------------------------------------
+# --- inputs ----------------------------------------------------------------------------------
 def search_history(identification: Any) -> list[dict[str, Any]]:
     """The identifier's evaluations of its ε search, in order, from its stage details.
 
     Recognised (the identifier decides what it keeps; absent → empty list):
 
-    * stage ``search`` (hybrid): ``detail["history"]`` = list of
+    * stage ``scan`` (hybrid): ``detail["history"]`` = list of
       ``{"epsilon_deg", "cost_nm", "phi"?, "omega_scale"?}`` in evaluation order;
     * stage ``paper``: ``detail["searches"]`` = list (one per pass) of
       ``{"history": [[epsilon_deg, loss], ...] or [{"epsilon_deg", "loss"}], "method"?, …}``.
@@ -95,7 +84,7 @@ def search_history(identification: Any) -> list[dict[str, Any]]:
     out: list[dict[str, Any]] = []
     for stage in getattr(identification, "stages", []) or []:
         detail = getattr(stage, "detail", {}) or {}
-        if stage.name == "search" and isinstance(detail.get("history"), Sequence):
+        if stage.name == "scan" and isinstance(detail.get("history"), Sequence):
             for h in detail["history"]:
                 if isinstance(h, Mapping) and "epsilon_deg" in h:
                     out.append({"pass": 0, "epsilon_deg": float(h["epsilon_deg"]),
@@ -114,9 +103,7 @@ def search_history(identification: Any) -> list[dict[str, Any]]:
     return out
 
 
-# ---------------------------------------------------------------------------------------------
-# the numbers behind the figures
-# ---------------------------------------------------------------------------------------------
+# --- the numbers behind the figures ----------------------------------------------------------
 @dataclass(frozen=True)
 class _Curves:
     frd: Any                                   # FRD of the measurement
@@ -139,11 +126,17 @@ def _sampled(resp: NDArray[np.complex128], f: NDArray[np.float64], fs: float, de
     return resp * np.exp(-2j * np.pi * f * delay_s) * np.sinc(f / fs) ** 2
 
 
-def _options(config: Mapping[str, Any] | None) -> tuple[tuple[float, float], float, tuple[float, float]]:
-    ident = (config or {}).get("identification") or {}
-    band = tuple(ident.get("band_hz", (0.1, 400.0)))
-    res = float(ident.get("resolution_hz", 0.1))
-    eb = tuple(ident.get("epsilon_bounds_deg", (0.01, 1.0)))
+def _options(config: Mapping[str, Any] | None, identification: Any = None,
+             n_samples: int = 0, fs: float = 0.0) -> tuple[tuple[float, float], float, tuple[float, float]]:
+    """FRD band and resolution (the identification's own when it has them) and the ε range."""
+    opts = (config or {}).get("identification") or {}
+    band = tuple(opts.get("band_hz") or (0.1, 400.0))
+    res = max(float(opts.get("resolution_hz") or 0.1), fs / n_samples if n_samples else 0.0)
+    for stage in getattr(identification, "stages", []) or []:
+        if stage.name == "start" and "band_hz" in stage.detail:
+            band = tuple(stage.detail["band_hz"])
+            res = float(stage.detail.get("resolution_hz", res))
+    eb = tuple(opts.get("epsilon_bounds_deg") or (0.01, 1.0))
     return (float(band[0]), float(band[1])), res, (float(eb[0]), float(eb[1]))
 
 
@@ -154,7 +147,7 @@ def _curves(rec: Recording, ident: Any, config: Mapping[str, Any] | None,
     from .ident.frd import estimate_frd
 
     fs = rec.sample_rate_hz
-    band, res, eb = _options(config)
+    band, res, eb = _options(config, ident, len(rec), fs)
     band = (band[0], min(band[1], 0.45 * fs))
     warnings: list[str] = []
     u, v = rec.torque_ref, rec.motor_velocity
@@ -229,9 +222,7 @@ def _zoom_window(rec: Recording, c: _Curves, eps: float) -> tuple[int, int, str]
     return max(0, i - half), min(n, i + half), f"a motor-velocity reversal at t = {i / fs:.4f} s"
 
 
-# ---------------------------------------------------------------------------------------------
-# identification figures
-# ---------------------------------------------------------------------------------------------
+# --- identification figures ------------------------------------------------------------------
 def _db(h: NDArray[np.complex128]) -> NDArray[np.float64]:
     return 20.0 * np.log10(np.maximum(np.abs(h), 1e-300))
 
@@ -366,7 +357,7 @@ def _fig_search(ident: Any, c: _Curves, history: list[dict[str, Any]]) -> str:
     else:
         best: list[Mapping[str, Any]] = []
         for s in ident.stages:
-            if s.name == "search" and isinstance(s.detail.get("best"), Sequence):
+            if s.name == "scan" and isinstance(s.detail.get("best"), Sequence):
                 best = [b for b in s.detail["best"] if isinstance(b, Mapping)]
         if best:
             ax_h = fig.panel(220, y_scale="log", x_label="ε [deg]", y_label="torque residual RMS [N·m]",
@@ -407,9 +398,7 @@ def _fig_iterations(ident: Any) -> str:
     return fig.svg("fig-iterations")
 
 
-# ---------------------------------------------------------------------------------------------
-# tuning and verification figures
-# ---------------------------------------------------------------------------------------------
+# --- tuning and verification figures ---------------------------------------------------------
 def _fmt_hz(f: float) -> str:
     return f"{f / 1e3:.3g} kHz" if f >= 1e3 else f"{f:.3g} Hz"
 
@@ -511,9 +500,7 @@ def _fig_move(v: Any, scenario: str, fig_id: str, title: str) -> str | None:
     return _verification_fig(fig_id, title, panels)
 
 
-# ---------------------------------------------------------------------------------------------
-# HTML
-# ---------------------------------------------------------------------------------------------
+# --- HTML ------------------------------------------------------------------------------------
 _CSS = """
 body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,'DejaVu Sans',sans-serif;margin:0;color:#1d1d1f;background:#f6f7f9}
 main{max-width:1100px;margin:0 auto;padding:16px 24px 48px}
@@ -605,9 +592,10 @@ def _tool_version() -> str:
 def _verdict(ident: Any, tuning: TuningOutcome | None) -> str:
     """The verdict box: ready / not ready and every reason (controller.json's), or why there is none."""
     notes: list[str] = []
-    if ident is not None and any("approximate" in n.lower() for n in getattr(ident, "notes", [])):
-        notes.append("The identification says its result is approximate: read its notes under "
-                     "'Identified model' before trusting the settings.")
+    quality = getattr(ident, "fit", None)
+    if quality is not None and quality.approximate:
+        notes.append("The identification says its result is approximate: " + "; ".join(quality.reasons)
+                     + ". Read its notes under 'Identified model' before trusting the settings.")
     if tuning is None:
         why = ("No identification in this run (--no-identify, or it failed): measured data only."
                if ident is None else "No controller settings in this run (--no-tune): the identified model only.")
@@ -619,15 +607,16 @@ def _verdict(ident: Any, tuning: TuningOutcome | None) -> str:
     reasons = list(ver.get("reasons", []))
     if ready:
         head = "Ready: the settings passed every check"
-        body = ("<p>Margins met on the identified model and on the verification plant; no limit cycle; "
-                "every step settles.</p>")
+        body = ("<p>Margins met on the identified model, over the uncertainty set around it (worst case below) "
+                "and on the verification plant; no limit cycle; every step settles.</p>")
         nxt = ("Next: apply them with <code>commission … --apply</code> (shows old → new and asks), or enter "
                "the values of controller.json / controller-&lt;drive&gt;.yaml in the drive's tool.")
     else:
         head = "Not ready: do not apply these settings"
         body = "<ul>" + "".join(f"<li>{_e(r)}</li>" for r in reasons) + "</ul>"
         nxt = ("Next: check the model below (identification notes, fit), then try <code>--preset soft</code> "
-               "or set the drive's current-loop bandwidth and delay in the config (tuning section).")
+               "or give the drive's current-loop bandwidth and delays (its description's loop block, or the "
+               "config's tuning section).")
     body += "".join(f"<p>{_e(n)}</p>" for n in notes)
     return (f'<section class="verdict {"ready" if ready else "not-ready"}" id="verdict"><h2>{_e(head)}</h2>'
             f"{body}<p>{nxt}</p></section>")
@@ -658,6 +647,13 @@ def _cards(ident: Any, tuning: TuningOutcome | None, true_plant: PlantParameters
             ("tile-gm", "—" if gm is None else f"{gm:.1f} dB",
              f"gain margin, velocity loop (required {mg['required_gain_margin_db']:g} dB)"),
         ]
+        rb = tuning.controller.get("robust")
+        if rb:
+            cards.append(("tile-worst", f"{rb['phase_margin_deg']:.1f}° / {rb['gain_margin_db']:.1f} dB",
+                          f"worst case over {rb['members']} members ({rb['phase_margin_member']['description']})"))
+        lim = tuning.controller.get("bandwidth_limit")
+        if lim:
+            cards.append(("tile-limit", str(lim["factor"]), "what limited the velocity loop's bandwidth"))
     if true_plant is not None:
         cards.append(("tile-true-epsilon", f"{true_plant.epsilon_deg:.4f}°", "true ε (simulator)"))
     if not cards:
@@ -695,13 +691,46 @@ def _settings_table(s: Any) -> str:
     else:
         rows.append(("backlash compensation", "off", ""))
     rows += [
-        ("current loop assumed", "ideal" if s.current_loop_bandwidth_hz is None
-         else f"{s.current_loop_bandwidth_hz:g} Hz first-order", ""),
-        ("computation delay assumed", float(s.computation_delay_samples), "samples"),
         ("velocity loop clock", s.sample_rate_hz, "Hz"),
         ("preset", s.preset.value if hasattr(s.preset, "value") else str(s.preset), ""),
     ]
-    return _table(rows, ["setting", "value", "unit"])
+    return _table(rows, ["setting", "value", "unit"]) + _drive_table(s)
+
+
+def _drive_table(s: Any) -> str:
+    """The drive's loop the settings were designed for, each figure with where it comes from,
+    and the measured band that bounds the crossover."""
+    dyn = s.dynamics
+    rows: list[list[Any]] = []
+    if dyn is not None:
+        def row(label: str, sv: Any, text: str) -> list[Any]:
+            src = f"{sv.how.value}: {sv.source}" + (" — confirm" if sv.confirm else "")
+            return [label, text, src]
+
+        cl = dyn.current_loop_bandwidth_hz
+        def samples(x: Any) -> str:
+            return f"{float(x or 0.0):g} sample" + ("" if float(x or 0.0) == 1.0 else "s")
+
+        rows += [row("current loop", cl, "ideal" if cl.value is None else f"{cl.value:g} Hz (first order)"),
+                 row("computation delay", dyn.computation_delay_samples, samples(dyn.computation_delay_samples.value)),
+                 row("encoder delay", dyn.encoder_delay_samples, samples(dyn.encoder_delay_samples.value)),
+                 row("velocity loop clock", dyn.sample_rate_hz, f"{dyn.sample_rate_hz.value:g} Hz"),
+                 row("position loop period", dyn.position_loop_period_s,
+                     f"{1e6 * float(dyn.position_loop_period_s.value or 0.0):g} µs")]
+        if dyn.gain_limits:
+            rows.append(["gain ranges", "; ".join(f"{k} {a:g}–{b:g}" for k, (a, b) in dyn.gain_limits.items()),
+                         dyn.gain_limits_source])
+    if s.measured_band_hz is not None:
+        lo, hi = s.measured_band_hz
+        limit = "" if s.crossover_limit_hz is None else f"; crossover limit {s.crossover_limit_hz:.0f} Hz"
+        rows.append(["measured band", f"{lo:g}–{hi:g} Hz{limit}", s.measured_band_source])
+    if s.limit is not None:
+        rows.append(["bandwidth limited by", s.limit.factor.value, s.limit.detail])
+    if not rows:
+        return ""
+    return ("<h3>The drive's loop, as designed for</h3>" + _table(rows, ["figure", "value", "from"])
+            + "<p>The margins must hold with these figures and over the uncertainty set around them (below). "
+              "Figures marked confirm are not from the drive's own manual.</p>")
 
 
 def _margins_table(tuning: TuningOutcome) -> str:
@@ -736,11 +765,31 @@ def _margins_table(tuning: TuningOutcome) -> str:
                         _margin(vm.gain_margin_db, " dB", f"{ver_keys[key]}.gain_margin_db", gm_req if required else None),
                         vm.stable]
         rows.append(row)
+    rb = s.robust
+    if rb is not None:
+        row = ["velocity loop, worst case over the uncertainty set",
+               _margin(rb.phase_margin_deg, "°", "robust.phase_margin_deg", pm_req),
+               _margin(rb.gain_margin_db, " dB", "robust.gain_margin_db", gm_req), None, rb.stable]
+        if not same:
+            row += [None, None, None]
+        rows.append(row)
     note = (f"Required on the velocity loop: phase margin ≥ {pm_req:g}°, gain margin ≥ {gm_req:g} dB "
             f"(preset {s.preset.value if hasattr(s.preset, 'value') else s.preset}; the design keeps a guard on the "
             "identified model). ")
     note += ("The verification ran on the identified model: its margins are these." if same else
-             "The verification plant is another machine (the simulator's true plant): its own margins are beside.")
+             f"The verification plant is another machine ({v.plant_note or 'not the design model'}): its own "
+             "margins are beside.")
+    if rb is not None:
+        unc = rb.uncertainty
+
+        def each(xs: Sequence[float]) -> str:
+            return "/".join(f"{x:g}" for x in xs)
+
+        note += (f" Worst case over {rb.members} members (current loop ×{each(unc.current_loop_factors)}, "
+                 f"delay +{each(unc.extra_delay_samples)} samples, J_l ×{each(unc.load_inertia_factors)}, "
+                 f"K ×{each(unc.stiffness_factors)}, ε ×{each(unc.backlash_factors)}): phase margin set by "
+                 f"{rb.phase_member.describe(rb.current_loop_hz)}; gain margin by "
+                 f"{rb.gain_member.describe(rb.current_loop_hz)}.")
     return _table(rows, header) + f"<p>{_e(note)}</p>"
 
 
@@ -795,6 +844,7 @@ def _plant_rows(pp: PlantParameters) -> list[tuple[Any, ...]]:
         rows += [("Coulomb friction, motor", pp.coulomb_motor_nm, "N·m"), ("Coulomb friction, load", pp.coulomb_load_nm, "N·m")]
     rows.append(("current loop", "ideal" if pp.current_loop_bandwidth_hz is None
                  else f"{pp.current_loop_bandwidth_hz:g} Hz", ""))
+    rows.append(("computation delay", float(pp.delay_samples), "samples"))
     return rows
 
 
@@ -857,8 +907,8 @@ def render_report(
             parts.append("<h3>Design notes</h3><ul>" + "".join(f"<li>{_e(n)}</li>" for n in s.notes) + "</ul>")
         parts.append('<h2 id="verification">Verification</h2>')
         plant = v.plant
-        where = ("the simulator's true machine (not the identified model)" if true_plant is not None
-                 else "the identified model with its backlash (the true machine is not known on a real axis)")
+        where = v.plant_note or ("the simulator's true machine (not the identified model)" if true_plant is not None
+                                 else "the identified model with its backlash")
         parts.append(f"<p>Closed-loop runs at {s.sample_rate_hz:g} Hz on {_e(where)}, each from rest with the "
                      "gears centred in the gap.</p>")
         parts.append("<details><summary>verification plant</summary>"

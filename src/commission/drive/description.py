@@ -58,8 +58,9 @@ def parameter_raw(spec: ParameterSpec | ModbusParameter, name: str, value: float
     return raw
 
 __all__ = [
-    "DRIVERS_ENV", "ChannelUnit", "DriveDescription", "ExcitationMethod", "ObjectRef", "ParameterSpec",
-    "TraceChannel", "drivers_dir", "list_drives", "load_description",
+    "DRIVERS_ENV", "GENERIC_DRIVE", "ChannelUnit", "DriveDescription", "ExcitationMethod", "IdentitySpec",
+    "LoopSpec", "ObjectRef", "ParameterSpec", "SourcedValue", "TraceChannel", "drivers_dir", "find_description",
+    "list_drives", "load_description",
     "ModbusParameter", "ModbusRegister", "ModbusRegisters", "ModbusSpec", "ModbusString", "ModbusTrace",
     "ModbusTraceChannel", "ModbusWaveform",
 ]
@@ -160,8 +161,24 @@ class StreamedSpec(_Model):
     """The host-streamed fallback (standard objects; PDO numbers configurable)."""
 
     rpdo: int = Field(1, ge=1, le=4, description="RPDO number carrying target torque 0x6071")
-    tpdo: tuple[int, int] = Field((1, 2), description="TPDOs: (0x6064 + 0x606C, 0x6077 + 0x6041)")
+    tpdo: int = Field(1, ge=1, le=4, description="TPDO number carrying 0x6064 + 0x6077 + 0x6041 (8 bytes)")
     max_load: float = Field(0.8, gt=0, le=1.0, description="largest bus load allowed")
+
+
+class IdentitySpec(_Model):
+    """What the drives of a family report in 0x1018 (identity object)."""
+
+    vendor_id: int = Field(ge=0, le=0xFFFFFFFF, description="0x1018:01")
+    product_codes: tuple[int, ...] = Field((), description="0x1018:02 values of the family; empty: any")
+
+    def matches(self, vendor_id: int | None, product_code: int | None) -> bool:
+        if vendor_id != self.vendor_id:
+            return False
+        return not self.product_codes or product_code in self.product_codes
+
+    def describe(self) -> str:
+        codes = ", ".join(f"0x{c:X}" for c in self.product_codes) or "any"
+        return f"vendor 0x{self.vendor_id:08X}, product {codes}"
 
 
 class ParameterSpec(_Model):
@@ -175,6 +192,35 @@ class ParameterSpec(_Model):
     max: float | None = None
     maps_to: str = Field("", description="what a tuning result writes here")
     note: str = ""
+
+
+class SourcedValue(_Model):
+    """One figure of the drive's loop structure, with where it comes from (``{value, source}``)."""
+
+    value: float = Field(ge=0)
+    source: str = Field(min_length=1, description="where the figure comes from: the manual's section, "
+                        "a catalogue, or 'assumed: …'")
+    confirm: bool = Field(False, description="true where the figure is not from the drive's own manual: "
+                          "confirm it before relying on it")
+
+
+class LoopSpec(_Model):
+    """The drive's own control loops (``loop:``), what the tuning needs and a record cannot always show.
+
+    Each figure is optional; the tuning states a conservative assumption for what is missing.
+    The gain ranges are the parameter map's (``parameters:``, min/max in each parameter's unit).
+    """
+
+    current_loop_bandwidth_hz: SourcedValue | None = Field(
+        None, description="closed current (torque) loop bandwidth, as a first-order lag [Hz]")
+    velocity_loop_period_s: SourcedValue | None = Field(None, description="velocity-loop sample period [s]")
+    position_loop_period_s: SourcedValue | None = Field(None, description="position-loop sample period [s]")
+    computation_delay_s: SourcedValue | None = Field(
+        None, description="from the velocity sample to the torque reference reaching the current loop, beyond "
+        "the zero-order hold's own sample [s]")
+    encoder_delay_s: SourcedValue | None = Field(
+        None, description="from the position's instant to its use in the velocity loop (serial encoder "
+        "transmission) [s]")
 
 
 class UnitsSpec(_Model):
@@ -346,11 +392,15 @@ class DriveDescription(_Model):
     sdo_timeout_s: float = Field(0.3, gt=0, le=10)
     drive_sample_rate_hz: float = Field(8000.0, gt=0, description="the drive's control/trace clock")
     excitation: ExcitationMethod
+    identity: IdentitySpec | None = Field(
+        None, description="0x1018 of the family: picked when --drive is omitted, checked when given; "
+        "a description without one fits any CiA 402 drive (generic)")
     trace: TraceSpec | None = None
     streamed: StreamedSpec = StreamedSpec()
     units: UnitsSpec = UnitsSpec()
     error_codes: dict[int, str] = Field(default_factory=dict, description="0x603F / EMCY code -> text")
     parameters: dict[str, ParameterSpec] = Field(default_factory=dict)
+    loop: LoopSpec = Field(LoopSpec(), description="the drive's own loop structure, for the tuning")
     modbus: ModbusSpec | None = Field(None, description="Modbus RTU register map (inline, or modbus.yaml beside)")
     folder: Path = Field(Path("."), exclude=True)
 
@@ -405,6 +455,27 @@ def drivers_dir() -> Path:
 def list_drives() -> list[str]:
     """Names of the drive families available."""
     return sorted(p.name for p in drivers_dir().iterdir() if (p / DESCRIPTION_FILE).is_file())
+
+
+#: the description used for a drive whose identity no description claims
+GENERIC_DRIVE = "generic-cia402"
+
+
+def find_description(vendor_id: int | None, product_code: int | None) -> DriveDescription | None:
+    """The description whose ``identity`` claims this drive (a product match before a vendor-only
+    one), or None. Descriptions that fail to load are skipped: they cannot claim a drive."""
+    best: tuple[int, DriveDescription] | None = None
+    for name in list_drives():
+        try:
+            desc = load_description(name)
+        except ConfigError:
+            continue
+        if desc.identity is None or not desc.identity.matches(vendor_id, product_code):
+            continue
+        rank = 2 if desc.identity.product_codes else 1
+        if best is None or rank > best[0]:
+            best = (rank, desc)
+    return None if best is None else best[1]
 
 
 def load_description(name_or_path: str | Path) -> DriveDescription:

@@ -314,6 +314,7 @@ class ModbusDrive(Drive):
         self._failure: DriveError | None = None
         self._start_time: datetime | None = None
         self._last_partial: Recording | None = None
+        self._downloaded: NDArray[Any] | None = None  # the waveform in the drive's player (prepare_excitation)
         self.client = _RtuClient(
             port, line_stats=self.stats, framer=FramerType.RTU, baudrate=self.baudrate, parity=spec.parity,
             stopbits=spec.stopbits, timeout=self.timeout_s, retries=self.retries, reconnect_delay=0,
@@ -447,14 +448,27 @@ class ModbusDrive(Drive):
             if shown != int(mode):
                 raise DriveError(f"{self._where()} did not take mode {mode.name}: it shows {shown}")
 
-    def _write_limits(self, max_torque_nm: float, max_speed_rad_s: float, max_travel_rad: float | None) -> None:
-        regs = self._regs
+    def _limit_units(self, max_torque_nm: float, max_speed_rad_s: float) -> tuple[int, int]:
+        """The torque limit in whole per mille of the rated torque and the speed limit in whole rpm,
+        rounded down (the CiA 402 units the register map carries)."""
+        if not (math.isfinite(max_torque_nm) and math.isfinite(max_speed_rad_s)):
+            raise ConfigError(f"limits must be finite, got {max_torque_nm:g} N·m and {max_speed_rad_s:g} rad/s")
         permille = math.floor(max_torque_nm / self.rated_torque_nm * 1000)
         if not 1 <= permille <= 0xFFFF:
             raise ConfigError(f"torque limit {max_torque_nm:g} N·m is {permille} per mille of the rated torque: out of range")
         rpm = math.floor(max_speed_rad_s * 60 / (2 * math.pi))
         if rpm < 1:
             raise ConfigError(f"speed limit {max_speed_rad_s:g} rad/s is below 1 rpm, the unit of the speed limit")
+        return permille, rpm
+
+    def limits_as_held(self, max_torque_nm: float, max_speed_rad_s: float) -> tuple[float, float]:
+        """The torque [N·m] and speed [rad/s] limits as this drive will hold them (sequencer hook)."""
+        permille, rpm = self._limit_units(max_torque_nm, max_speed_rad_s)
+        return permille * self.rated_torque_nm / 1000, rpm * 2 * math.pi / 60
+
+    def _write_limits(self, max_torque_nm: float, max_speed_rad_s: float, max_travel_rad: float | None) -> None:
+        regs = self._regs
+        permille, rpm = self._limit_units(max_torque_nm, max_speed_rad_s)
         self._write(regs.max_torque, permille, "the torque limit")
         self._write(regs.max_speed, rpm, "the speed limit")
         if max_travel_rad is not None and None not in (regs.position_actual, regs.travel_min, regs.travel_max):
@@ -520,16 +534,18 @@ class ModbusDrive(Drive):
             words = words.reshape(-1, per)[:, ::-1].reshape(-1)
         return words
 
-    def _excite(
-        self, waveform: NDArray[np.float64], sample_rate_hz: float, mode: Mode, progress: ProgressCallback | None
-    ) -> Recording:
-        wf, tr = self.spec.waveform, self.spec.trace
-        assert wf is not None and tr is not None
-        self._last_partial = None
+    def prepare_excitation(self, waveform: NDArray[np.float64], sample_rate_hz: float, mode: Mode) -> None:
+        """Check the rate and download the waveform, before enabling (sequencer hook); nothing is
+        sent when exactly this waveform is in the drive's player already."""
+        wf = self.spec.waveform
+        assert wf is not None
         rate = self.sample_rate_hz
         if abs(sample_rate_hz - rate) > 1e-9 * rate:
             raise ConfigError(f"drive '{self.description.name}' plays waveforms at {rate:g} Hz, not {sample_rate_hz:g} Hz")
         words = self._waveform_words(waveform, mode)
+        if self._downloaded is not None and np.array_equal(self._downloaded, words):
+            return
+        self._downloaded = None
         total = waveform.size
         per = max(1, INT_TYPES[wf.type][1] // 2)
         block = (wf.registers // per) * per
@@ -544,6 +560,18 @@ class ModbusDrive(Drive):
             requests += 1
         self.transfers.append(ModbusTransfer("waveform", "download", 2 * words.size, requests,
                                              self.stats["bytes"] - bytes0, time.perf_counter() - t0))
+        self._downloaded = words
+
+    def _excite(
+        self, waveform: NDArray[np.float64], sample_rate_hz: float, mode: Mode, progress: ProgressCallback | None
+    ) -> Recording:
+        wf, tr = self.spec.waveform, self.spec.trace
+        assert wf is not None and tr is not None
+        self._last_partial = None
+        rate = self.sample_rate_hz
+        self.prepare_excitation(waveform, sample_rate_hz, mode)
+        self._downloaded = None  # the player consumes it: a next run downloads again
+        total = waveform.size
         self._start_time = datetime.now(timezone.utc)
         self._write(tr.start, tr.start_value, "the start trigger")
         self._await_playback(lambda: int(self._read(tr.progress, "the progress")), total, rate, progress,

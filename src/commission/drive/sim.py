@@ -64,6 +64,7 @@ class SimDrive(Drive):
         )
         self._start_time: datetime | None = None
         self._sample_rate_hz = self.device.sample_rate_hz
+        self._prepared: NDArray[np.float64] | None = None
 
     # -- hooks -------------------------------------------------------------------------
     @property
@@ -91,17 +92,29 @@ class SimDrive(Drive):
         code = self.device.error_code
         return f"drive fault 0x{int(code):04X} ({code.text})"
 
-    def _excite(
-        self, waveform: NDArray[np.float64], sample_rate_hz: float, mode: Mode, progress: ProgressCallback | None
-    ) -> Recording:
+    def prepare_excitation(self, waveform: NDArray[np.float64], sample_rate_hz: float, mode: Mode) -> None:
+        """Check the sample rate and load the waveform into the player while the drive is disabled."""
         dev = self._link()
         if abs(sample_rate_hz - dev.sample_rate_hz) > 1e-9 * dev.sample_rate_hz:
             raise ConfigError(
                 f"the simulated drive plays waveforms at {dev.sample_rate_hz:g} Hz, not {sample_rate_hz:g} Hz"
             )
+        wave = np.asarray(waveform, dtype=np.float64)
+        try:
+            dev.load_waveform(wave)
+        except ValueError as err:  # longer than the trace buffer
+            raise ConfigError(f"the simulated drive refuses the waveform: {err}") from err
+        self._prepared = wave
+
+    def _excite(
+        self, waveform: NDArray[np.float64], sample_rate_hz: float, mode: Mode, progress: ProgressCallback | None
+    ) -> Recording:
+        dev = self._link()
         if mode is not dev.mode:
             raise DriveTimeout(f"drive is in mode {dev.mode.name}, not {mode.name}")
-        dev.load_waveform(waveform)
+        prepared, self._prepared = self._prepared, None
+        if prepared is None or prepared.shape != waveform.shape or not np.array_equal(prepared, waveform):
+            self.prepare_excitation(waveform, sample_rate_hz, mode)
         self._start_time = datetime.now(timezone.utc)
         dev.start()
         total = waveform.size

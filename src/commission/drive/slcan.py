@@ -39,7 +39,6 @@ from can.interfaces.slcan import slcanBus
 from ..exceptions import DriveError, DriveNotFound, DriveTimeout
 from .canopen import CanopenDrive
 from .cia402 import Command
-from .description import DriveDescription, load_description
 
 __all__ = ["CheckedSlcanBus", "SlcanCanopenDrive", "open_slcan", "probe_adapter"]
 
@@ -76,6 +75,10 @@ class CheckedSlcanBus(slcanBus):
 
     def __init__(self, channel: str, **kwargs: Any) -> None:
         self.port_name = channel
+        #: arrival time (time.time) of the bytes read so far: (end offset in the stream, time)
+        self._arrivals: list[tuple[int, float]] = []
+        self._consumed = 0
+        self._line_time = 0.0
         self.garbled = 0
         self.last_garbled = ""
         self.frames = 0
@@ -97,6 +100,7 @@ class CheckedSlcanBus(slcanBus):
                 end = min(ends)
                 line = buf[: end + 1].decode("ascii", "replace")
                 del buf[: end + 1]
+                self._stamp(end + 1)
                 return self._checked(line)
             if self.failure is not None:  # the receive thread keeps waiting; send() reports it
                 time.sleep(0.1 if timeout is None else min(timeout, 0.1))
@@ -112,8 +116,27 @@ class CheckedSlcanBus(slcanBus):
                 return None
             if chunk:
                 buf.extend(chunk)
+                self._arrivals.append((self._consumed + len(buf), time.time()))
             elif expiry.expired():
                 return None
+
+    def _stamp(self, length: int) -> None:
+        """The arrival time of the line just taken from the buffer (its last byte's read)."""
+        end = self._consumed + length
+        for at, when in self._arrivals:
+            if at >= end:
+                self._line_time = when
+                break
+        self._consumed = end
+        self._arrivals = [(at, when) for at, when in self._arrivals if at > end]
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        """python-can's, with each frame stamped when its line reached this host (python-can stamps it
+        when parsed): the streamed cycle tells an answer that waited in the host from a fresh one."""
+        msg, filtered = super()._recv_internal(timeout)
+        if msg is not None and self._line_time:
+            msg.timestamp = self._line_time
+        return msg, filtered
 
     def _checked(self, line: str) -> str | None:
         if line and line[0] in "tTrR":
@@ -221,6 +244,8 @@ class SlcanCanopenDrive(CanopenDrive):
 
     #: the adapter's answer to ``V`` (e.g. ``V1013``)
     adapter_version: str = ""
+    MIN_SDO_TIMEOUT_S = MIN_SDO_TIMEOUT_S
+    MIN_HEARTBEAT_TIMEOUT_MS = MIN_HEARTBEAT_TIMEOUT_MS
 
     def __init__(self, port: str, *, bus: CheckedSlcanBus, **options: Any) -> None:
         self.bus = bus
@@ -303,13 +328,17 @@ def open_slcan(
     tty_baudrate: int = 115200,
     sleep_after_open: float | None = None,
     probe_timeout_s: float = PROBE_TIMEOUT_S,
+    line_bps: float | None = None,
     **options: Any,
 ) -> SlcanCanopenDrive:
     """The CANopen backend through the slcan adapter on ``port`` (``commission --interface slcan``).
 
     :param bitrate: CAN bit rate the adapter is set to (``S0``–``S8``; default: the adapter's own).
     :param tty_baudrate: the adapter's serial speed (USB CDC adapters ignore it).
-    :param options: passed on to :class:`CanopenDrive` (node_id, drive, excitation, band_hz, …).
+    :param line_bps: the adapter's serial line [bit/s] when it is a UART of known speed (the streamed
+        cycle must fit it); None for a USB adapter, whose line is not the limit.
+    :param options: passed on to :class:`CanopenDrive` (node_id, drive (None: from the drive's
+        identity), excitation, band_hz, max_rate_hz, …).
     """
     lock = contextlib.ExitStack()
     lock.enter_context(_locked(port))  # "busy" before anything is written to the port
@@ -345,14 +374,8 @@ def open_slcan(
             lock.close()
 
     try:
-        name = options.pop("drive", None)
-        desc = name if isinstance(name, DriveDescription) else load_description(name or "generic-cia402")
-        desc = desc.model_copy(update={
-            "sdo_timeout_s": max(desc.sdo_timeout_s, MIN_SDO_TIMEOUT_S),
-            "heartbeat_timeout_ms": max(desc.heartbeat_timeout_ms, MIN_HEARTBEAT_TIMEOUT_MS),
-        })
-        drive = SlcanCanopenDrive(port, bus=bus, network=network, on_close=close, bitrate=bitrate, drive=desc,
-                                  **options)
+        drive = SlcanCanopenDrive(port, bus=bus, network=network, on_close=close, bitrate=bitrate,
+                                  line_bps=line_bps, **options)
     except BaseException:
         close()
         raise

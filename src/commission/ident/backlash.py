@@ -1,64 +1,26 @@
-"""Two-mass model with a dead-zone backlash: exact event-located simulation, losses, ε search.
+"""Two-mass model with a dead-zone backlash: event-located simulation, output-error losses, ε search.
 
-The plant (METHOD.md, paper eqs. 1–5)::
+Plant (METHOD.md, paper eqs. 1–5), twist z = x_m − x_l (the dead zone's input)::
 
     J_m·ẍ_m = τ − B_m·ẋ_m − τ_s          J_l·ẍ_l = τ_s − B_l·ẋ_l
-    z  = x_m − x_l                         (twist, the dead zone's input x_s)
-    y  = dz(z; ε)                          τ_s = K·y + D·ẏ
+    τ_s = K·(z ∓ ε) + D·ż in contact (z ≷ ±ε),   τ_s = 0 in the gap (|z| ≤ ε)
 
-so τ_s = K·(z ∓ ε) + D·ż in contact (z ≷ ±ε) and τ_s = 0 in the gap (|z| ≤ ε).
+Simulation. The torque is held over a sample and each mode (contact+, gap, contact−) is
+linear, so a step is one precomputed matrix exponential of the 6×6 augmented system (state
+``[x_m, v_m, z, v_l]``, inputs ``[τ, 1]``; ``exp(M·Ts/2^j)`` for j = 0 … 28). A step that may
+leave its mode — at its end point, or in between (a graze, found from the Hermite interpolant
+of z with a margin far above its error) — is halved down to Ts/2^28 (0.47 ps at 8 kHz), where
+the mode switches; the rest of the sample continues in the new mode. The event time is thus
+the only approximation, and ε = 0 is one linear mode, exact up to rounding. Event location
+matters: a fixed step per sample is off by far more than an encoder step on impact-rich plants
+(measured with bench/bench_backlash.py: see bench/results/RESULTS.md).
 
-Simulation
-----------
-Within one sample the torque is constant (zero-order hold), and within one
-*mode* (contact+, gap, contact−) the dynamics are linear, so the state
-transition over a time t is the matrix exponential of a 6×6 augmented matrix
-(state ``[x_m, v_m, z, v_l]`` plus the constant inputs ``[τ, 1]``). The
-simulator precomputes, for every mode, ``exp(M·Ts/2^j)`` for j = 0 … 28
-(Taylor series at the finest level, then repeated squaring), and advances each
-sample with the full-step matrix. After every (sub-)step it checks whether the
-mode was left:
-
-* at the end point (z on the wrong side of ±ε), or
-* in between (a *grazing* contact or separation: z crosses ±ε and comes back
-  within the step) — detected from the cubic Hermite interpolant of z through
-  (z, ż) at both ends, with a safety margin far above its interpolation error.
-
-When a step leaves its mode it is halved (dyadic bisection with the
-precomputed sub-step matrices) down to Ts/2^28 ≈ 0.47 ps, the mode is switched
-there and the rest of the sample is completed in the new mode (with the same
-checks, so several events per sample are handled). The mode boundaries carry
-a hysteresis of 1e-13 rad (``_TOL_Z``) so that a state on a boundary cannot
-chatter. The only approximation is therefore the event time, located to
-0.47 ps; ε = 0 reduces to one linear mode (no events) and is exact up to
-rounding.
-
-Measured (bench/bench_backlash.py, tests/test_backlash.py), reference plant,
-80,000-sample experiment, 2-core machine under load: the loop itself takes
-~0.9–1.1 ms (:func:`simulate_motor_velocity`, the fast path for losses);
-the event checks cost ~10 % over a fixed step. :func:`simulate_deadzone`
-returns ten 640 kB arrays and costs 1.2–1.5 ms when the allocator reuses
-memory, but ~4 ms when every array lands on fresh pages (glibc mmaps
-blocks this large; page faults are expensive in this VM). Against scipy's ZOH discretisation (ε = 0):
-1.1e-10 rad/s. Against sim_drive's plant (RK4 + its own event location,
-40 sub-steps, 32-bit encoders) at ε = 0.40°: twist within 2.5e-13 rad
-(standard record) / 2.2e-10 rad (impact-rich chirp), velocity within the
-encoder step 1.2e-5 rad/s; a fixed step per sample without event location
-is off by 0.011 / 0.070 rad/s. A graze located inside one sample agrees with
-scipy's DOP853 + event location to 4e-11 rad/s. (A plain RK4 with even
-16,000 sub-steps per sample is *less* accurate than this: first-order error
-at the D·ż torque jumps.) Compile ~14–25 s into the numba cache on first
-use; later processes load it in ~0.5–0.9 s.
-
-Sampling convention (the drive's): at tick k the drive latches the encoder,
-reports ``velocity[k] = (pos[k] − pos[k−1])/Ts`` and then applies
-``torque_ref[k]`` with zero-order hold over ``[k·Ts, (k+1)·Ts)``. With
-``delay_samples = 1`` (the default) the simulator reproduces exactly that:
-``velocity[k]`` depends on ``torque_ref[0 … k−1]``. ``delay_samples = d``
-applies ``torque_ref[j − d + 1]`` over ``[j·Ts, (j+1)·Ts)`` — d − 1 extra
-samples of transport delay (zero torque before the record starts); d = 0
-applies ``torque_ref[j + 1]`` (the last value is held), i.e. it removes the
-backward-difference/ZOH sample of delay.
+Sampling convention (the drive's): at tick k the encoder is latched, ``velocity[k] =
+(pos[k] − pos[k−1])/Ts``, then ``torque_ref[k]`` is held over ``[k·Ts, (k+1)·Ts)``.
+``delay_samples = d`` applies ``torque_ref[j − d + 1]`` over ``[j·Ts, (j+1)·Ts)``: d = 1 is
+the drive's convention (``velocity[k]`` depends on ``torque_ref[0 … k−1]``), d > 1 adds
+transport delay (zero torque before the record), d = 0 removes the ZOH/backward-difference
+sample of delay (the last value is held).
 """
 
 from __future__ import annotations
@@ -76,38 +38,25 @@ from commission.exceptions import IdentificationError
 from commission.ident.twomass import TwoMassParameters
 
 __all__ = [
-    "DeadzoneState",
-    "DeadzoneResponse",
-    "EpsilonSearch",
-    "simulate_deadzone",
-    "simulate_motor_velocity",
-    "deadzone",
-    "nonlinear_torque",
-    "max_output_error",
-    "rms_output_error",
-    "epsilon_grid",
-    "search_epsilon_grid",
-    "search_epsilon_bayes",
+    "DeadzoneState", "DeadzoneResponse", "EpsilonSearch", "simulate_deadzone",
+    "simulate_motor_velocity", "deadzone", "nonlinear_torque", "max_output_error",
+    "rms_output_error", "epsilon_grid", "search_epsilon_grid", "search_epsilon_bayes",
     "epsilon_interval",
 ]
 
+#: Finest sub-step is Ts/2**28 (0.47 ps at 8 kHz): the event-time resolution.
 _J_LEVELS = 28
-"""Finest sub-step is Ts/2**28 (0.47 ps at 8 kHz): the event-time resolution."""
+#: Hysteresis on the mode boundaries z = ±ε [rad], so that a state on a boundary cannot chatter.
 _TOL_Z = 1e-13
-"""Hysteresis on the mode boundaries z = ±ε [rad]."""
+#: Margin factor of the Hermite graze detector (see ``_leaves``).
 _MARGIN = 0.05
-"""Hermite grazing detector margin factor (see ``_leaves``)."""
-
+#: Zeno guard: after this many mode switches in one sample the rest is finished in the current mode.
 _MAX_EVENTS_PER_SAMPLE = 64
-"""Zeno guard: after this many mode switches in one sample the rest of the sample
-is finished in the current mode (never reached in the tests and benchmarks)."""
 
 _MODE_PLUS, _MODE_GAP, _MODE_MINUS, _MODE_LINEAR = 0, 1, 2, 3
 
 
-# --------------------------------------------------------------------------- #
-# compiled core
-# --------------------------------------------------------------------------- #
+# --- compiled core ---------------------------------------------------------- #
 @njit(cache=True)
 def _mode_matrix(J_m, J_l, B_m, B_l, K, D, eps, mode):
     """Augmented 6×6 matrix M of one mode: d/dt [x_m, v_m, z, v_l, τ, 1] = M·[…]."""
@@ -287,8 +236,8 @@ def _simulate_core(J_m, J_l, B_m, B_l, K, D, eps, h, tau, shift, x0, locate, ful
 
     Returns x_m, z, x_l, v_m, v_l (backward differences), ẋ_m, ẋ_l, τ_s at the
     ticks, the final state and the number of events; with ``full = False`` only
-    v_m is filled, the other arrays are empty (every 640 kB output array costs
-    ~0.3 ms of fresh-page faults here, twice the loop's own time)."""
+    v_m is filled and the other arrays are empty (fresh output arrays cost more
+    than the loop itself)."""
     n = tau.shape[0]
     L = _J_LEVELS
     linear = eps <= 0.0
@@ -397,21 +346,15 @@ def _simulate_core(J_m, J_l, B_m, B_l, K, D, eps, h, tau, shift, x0, locate, ful
     return xm, zz, xl, vm, vl, vm_tick, vl_tick, ts, s_end, events
 
 
-# --------------------------------------------------------------------------- #
-# public API
-# --------------------------------------------------------------------------- #
+# --- public API ------------------------------------------------------------- #
 @dataclass(frozen=True)
 class DeadzoneState:
     """State of the two-mass + dead-zone model at one instant (SI units)."""
 
-    motor_position: float = 0.0
-    """x_m [rad]."""
-    motor_velocity: float = 0.0
-    """ẋ_m [rad/s]."""
-    load_position: float = 0.0
-    """x_l [rad]; the twist is x_m − x_l (0 = centre of the gap)."""
-    load_velocity: float = 0.0
-    """ẋ_l [rad/s]."""
+    motor_position: float = 0.0  # x_m [rad]
+    motor_velocity: float = 0.0  # ẋ_m [rad/s]
+    load_position: float = 0.0  # x_l [rad]; twist x_m − x_l = 0 is the centre of the gap
+    load_velocity: float = 0.0  # ẋ_l [rad/s]
 
 
 @dataclass(frozen=True)
@@ -423,26 +366,16 @@ class DeadzoneResponse:
     (``v[0]`` is the initial velocity).
     """
 
-    motor_velocity: NDArray[np.float64]
-    """[rad/s], backward difference of ``motor_position``."""
-    motor_position: NDArray[np.float64]
-    """x_m(k·Ts) [rad]."""
-    load_velocity: NDArray[np.float64]
-    """[rad/s], backward difference of ``load_position``."""
-    load_position: NDArray[np.float64]
-    """x_l(k·Ts) [rad]."""
-    twist: NDArray[np.float64]
-    """z = x_m − x_l at k·Ts [rad] (the dead zone's input x_s)."""
-    shaft_torque: NDArray[np.float64]
-    """τ_s = K·dz(z) + D·ẏ at k·Ts [N·m] (0 in the gap)."""
-    motor_velocity_instant: NDArray[np.float64]
-    """ẋ_m(k·Ts) [rad/s], the instantaneous velocity (not what a drive reports)."""
-    load_velocity_instant: NDArray[np.float64]
-    """ẋ_l(k·Ts) [rad/s]."""
-    final_state: DeadzoneState
-    """State at N·Ts (to continue a simulation)."""
-    n_events: int
-    """Number of mode switches (contact, separation) located inside the steps."""
+    motor_velocity: NDArray[np.float64]  # [rad/s], backward difference of motor_position
+    motor_position: NDArray[np.float64]  # x_m(k·Ts) [rad]
+    load_velocity: NDArray[np.float64]  # [rad/s], backward difference of load_position
+    load_position: NDArray[np.float64]  # x_l(k·Ts) [rad]
+    twist: NDArray[np.float64]  # z = x_m − x_l at k·Ts [rad]
+    shaft_torque: NDArray[np.float64]  # τ_s = K·dz(z) + D·ẏ at k·Ts [N·m] (0 in the gap)
+    motor_velocity_instant: NDArray[np.float64]  # ẋ_m(k·Ts) [rad/s], not what a drive reports
+    load_velocity_instant: NDArray[np.float64]  # ẋ_l(k·Ts) [rad/s]
+    final_state: DeadzoneState  # state at N·Ts (to continue a simulation)
+    n_events: int  # mode switches (contact, separation) located inside the steps
 
 
 def _prepare(params: TwoMassParameters, epsilon_rad: float, torque_ref: ArrayLike,
@@ -464,25 +397,14 @@ def _prepare(params: TwoMassParameters, epsilon_rad: float, torque_ref: ArrayLik
     if not np.all(np.isfinite(p)) or params.J_m <= 0.0 or params.J_l <= 0.0:
         raise IdentificationError(f"invalid two-mass parameters: {params}")
     ini = initial if initial is not None else DeadzoneState()
-    x0 = np.array([
-        ini.motor_position,
-        ini.motor_velocity,
-        ini.motor_position - ini.load_position,
-        ini.load_velocity,
-    ])
+    x0 = np.array([ini.motor_position, ini.motor_velocity, ini.motor_position - ini.load_position,
+                   ini.load_velocity])
     return [float(v) for v in p], tau, x0, ini
 
 
-def simulate_deadzone(
-    params: TwoMassParameters,
-    epsilon_rad: float,
-    torque_ref: ArrayLike,
-    sample_rate_hz: float,
-    *,
-    delay_samples: int = 1,
-    initial: DeadzoneState | None = None,
-    locate_events: bool = True,
-) -> DeadzoneResponse:
+def simulate_deadzone(params: TwoMassParameters, epsilon_rad: float, torque_ref: ArrayLike,
+                      sample_rate_hz: float, *, delay_samples: int = 1, initial: DeadzoneState | None = None,
+                      locate_events: bool = True) -> DeadzoneResponse:
     """Simulate the open-loop two-mass model with dead-zone backlash, driven by torque.
 
     :param params: linear two-mass parameters.
@@ -490,9 +412,8 @@ def simulate_deadzone(
         one linear mode, exact).
     :param torque_ref: motor torque reference [N·m], shape (N,), zero-order hold.
     :param sample_rate_hz: 1/Ts [Hz].
-    :param delay_samples: d ≥ 0. ``torque_ref[j − d + 1]`` acts over
-        ``[j·Ts, (j+1)·Ts)``; d = 1 is the drive's convention (``velocity[k]``
-        reflects torques up to k − 1). See the module docstring.
+    :param delay_samples: d ≥ 0, ``torque_ref[j − d + 1]`` acts over ``[j·Ts, (j+1)·Ts)``
+        (module docstring; 1 is the drive's convention).
     :param initial: state at t = 0; default at rest, twist 0 (centre of the gap).
     :param locate_events: locate contacts/separations inside the step (default).
         ``False`` decides the mode once per sample from the twist at the tick
@@ -504,39 +425,21 @@ def simulate_deadzone(
     xm, z, xl, vm, vl, vm_i, vl_i, ts, s_end, events = _simulate_core(
         *pv, float(epsilon_rad), h, tau, int(delay_samples) - 1, x0, bool(locate_events), True
     )
-    final = DeadzoneState(
-        motor_position=float(s_end[0]),
-        motor_velocity=float(s_end[1]),
-        load_position=float(s_end[0] - s_end[2]),
-        load_velocity=float(s_end[3]),
-    )
+    final = DeadzoneState(motor_position=float(s_end[0]), motor_velocity=float(s_end[1]),
+                          load_position=float(s_end[0] - s_end[2]), load_velocity=float(s_end[3]))
     return DeadzoneResponse(
-        motor_velocity=vm,
-        motor_position=xm,
-        load_velocity=vl,
-        load_position=xl,
-        twist=z,
-        shaft_torque=ts,
-        motor_velocity_instant=vm_i,
-        load_velocity_instant=vl_i,
-        final_state=final,
-        n_events=int(events),
+        motor_velocity=vm, motor_position=xm, load_velocity=vl, load_position=xl, twist=z, shaft_torque=ts,
+        motor_velocity_instant=vm_i, load_velocity_instant=vl_i, final_state=final, n_events=int(events),
     )
 
 
-def simulate_motor_velocity(
-    params: TwoMassParameters,
-    epsilon_rad: float,
-    torque_ref: ArrayLike,
-    sample_rate_hz: float,
-    *,
-    delay_samples: int = 1,
-    initial: DeadzoneState | None = None,
-    locate_events: bool = True,
-) -> NDArray[np.float64]:
-    """Only ``simulate_deadzone(...).motor_velocity`` [rad/s], shape (N,) — the fast path
-    for losses (bitwise the same values; one output array instead of ten, ~3× faster
-    here where fresh memory pages are expensive)."""
+def simulate_motor_velocity(params: TwoMassParameters, epsilon_rad: float, torque_ref: ArrayLike,
+                            sample_rate_hz: float, *, delay_samples: int = 1,
+                            initial: DeadzoneState | None = None, locate_events: bool = True
+                            ) -> NDArray[np.float64]:
+    """Only ``simulate_deadzone(...).motor_velocity`` [rad/s], shape (N,): the fast path for
+    losses (bitwise the same values; one output array instead of ten, which costs more than
+    the loop)."""
     pv, tau, x0, _ = _prepare(params, epsilon_rad, torque_ref, sample_rate_hz, delay_samples, initial)
     out = _simulate_core(
         *pv, float(epsilon_rad), 1.0 / sample_rate_hz, tau, int(delay_samples) - 1, x0,
@@ -551,35 +454,19 @@ def deadzone(x: ArrayLike, epsilon_rad: float) -> NDArray[np.float64]:
     return np.where(xa > epsilon_rad, xa - epsilon_rad, np.where(xa < -epsilon_rad, xa + epsilon_rad, 0.0))
 
 
-def nonlinear_torque(
-    params: TwoMassParameters,
-    epsilon_rad: float,
-    twist: ArrayLike,
-    twist_rate: ArrayLike,
-) -> NDArray[np.float64]:
-    """Internal torque n(t) by which the backlash differs from the linear shaft [N·m].
+def nonlinear_torque(params: TwoMassParameters, epsilon_rad: float, twist: ArrayLike,
+                     twist_rate: ArrayLike) -> NDArray[np.float64]:
+    """Internal torque n(t) by which the backlash differs from the linear shaft [N·m]::
 
-    The backlash shaft torque is written as the linear shaft torque minus n::
+        τ_s = K·dz(z) + D·ẏ = (K·z + D·ż) − n,   n = K·(z − dz(z)) + D·(ż − ẏ)
 
-        τ_s = K·dz(z) + D·ẏ = (K·z + D·ż) − n,
-        n   = K·(z − dz(z)) + D·(ż − ẏ)      (ẏ = ż in contact, 0 in the gap)
+    (n = K·ε·sign(z) in contact, K·z + D·ż in the gap). n acts between the masses, +n on
+    the motor and −n on the load, so V_m = G_mm·(T_ref + N) − G_ml·N; the paper's eq. 25
+    (T̂_input = T_ref − T̂_s, T̂_s ≡ −n) neglects the −n on the load.
 
-    i.e. n = K·ε·sign(z) + 0 in contact and n = K·z + D·ż in the gap. Sign and
-    where it enters: n acts *between* the masses, **+n on the motor** and
-    **−n on the load**, on top of the linear two-mass plant::
-
-        J_m·ẍ_m = τ_ref + n − B_m·ẋ_m − (K·z + D·ż)
-        J_l·ẍ_l = −n − B_l·ẋ_l + (K·z + D·ż)
-
-    So V_m = G_mm·(T_ref + N) − G_ml·N, G_mm the torque → motor-velocity TF and
-    G_ml the load-torque → motor-velocity TF. The paper's eq. 25
-    (T̂_input = T_ref − T̂_s) corresponds to T_ref + n with T̂_s ≡ −n, which
-    neglects the −n on the load.
-
-    :param twist: z = x_m − x_l [rad] — from a simulation
-        (:attr:`DeadzoneResponse.twist`) or a measured twist (load encoder).
-    :param twist_rate: ż [rad/s] (e.g. ``motor_velocity_instant − load_velocity_instant``
-        of a simulation, or v_m − v_l measured).
+    :param twist: z = x_m − x_l [rad], simulated (:attr:`DeadzoneResponse.twist`) or measured.
+    :param twist_rate: ż [rad/s] (``motor_velocity_instant − load_velocity_instant`` of a
+        simulation, or v_m − v_l measured).
     """
     z = np.asarray(twist, dtype=float)
     w = np.asarray(twist_rate, dtype=float)
@@ -605,29 +492,21 @@ def rms_output_error(v_meas: ArrayLike, v_sim: ArrayLike) -> float:
     return float(np.sqrt(np.mean((a - b) ** 2)))
 
 
-# --------------------------------------------------------------------------- #
-# ε search
-# --------------------------------------------------------------------------- #
+# --- ε search --------------------------------------------------------------- #
+#: The paper's search range and resolution for ε (Table 2) [rad].
 EPSILON_BOUNDS_RAD = (math.radians(0.01), math.radians(1.0))
-"""The paper's search range for ε (Table 2) [rad]."""
 EPSILON_RESOLUTION_RAD = math.radians(0.01)
-"""The paper's resolution for ε (Table 2) [rad]."""
 
 
 @dataclass(frozen=True)
 class EpsilonSearch:
     """Result of a 1-D search for the backlash half-width ε on a grid."""
 
-    epsilon_rad: float
-    """Best grid value [rad]."""
-    loss: float
-    """Loss at ``epsilon_rad``."""
-    evaluations: int
-    """Distinct loss calls (repeated grid points are served from a cache)."""
-    history: list[tuple[float, float]] = field(default_factory=list)
-    """(epsilon_rad, loss) of every distinct evaluation, in evaluation order."""
-    interval_rad: tuple[float, float] = (math.nan, math.nan)
-    """Grid values compatible with the minimum (see :func:`epsilon_interval`) [rad]."""
+    epsilon_rad: float  # best grid value [rad]
+    loss: float  # loss at epsilon_rad
+    evaluations: int  # distinct loss calls (repeated grid points are served from a cache)
+    history: list[tuple[float, float]] = field(default_factory=list)  # (ε [rad], loss), in order
+    interval_rad: tuple[float, float] = (math.nan, math.nan)  # see epsilon_interval [rad]
     method: Literal["grid", "bayes"] = "grid"
 
     @property
@@ -644,21 +523,14 @@ def epsilon_grid(bounds_rad: tuple[float, float], resolution_rad: float) -> NDAr
     return lo + resolution_rad * np.arange(n)
 
 
-def epsilon_interval(
-    grid: NDArray[np.float64],
-    loss_at: Callable[[int], tuple[float, float]],
-    i_best: int,
-    f_best: float,
-    rel_tol: float,
-) -> tuple[float, float]:
+def epsilon_interval(grid: NDArray[np.float64], loss_at: Callable[[int], tuple[float, float]], i_best: int,
+                     f_best: float, rel_tol: float) -> tuple[float, float]:
     """Connected run of grid values around the argmin whose loss may be within tolerance.
 
-    A grid index i belongs to the interval if its loss bound ``lower(i)`` satisfies
-    ``lower(i) ≤ f_best·(1 + rel_tol)``, walking outwards from ``i_best`` and
-    stopping at the first index that fails. ``loss_at(i)`` returns (lower, known):
-    for an evaluated point the loss itself; for BO, unevaluated points use the
-    GP's optimistic bound μ − 2σ. ``rel_tol`` expresses the noise level of the
-    loss (e.g. 0.05 = losses within 5 % of the minimum cannot be told apart).
+    Walks outwards from ``i_best`` while ``loss_at(i)[0] ≤ f_best·(1 + rel_tol)``;
+    ``loss_at(i)`` returns (lower bound, known): the loss of an evaluated point, the GP's
+    optimistic bound μ − 2σ for an unevaluated one. ``rel_tol`` is the loss's noise level
+    (0.05: losses within 5 % of the minimum cannot be told apart).
     """
     thr = f_best * (1.0 + rel_tol) if f_best >= 0 else f_best * (1.0 - rel_tol)
     lo = hi = i_best
@@ -669,13 +541,9 @@ def epsilon_interval(
     return float(grid[lo]), float(grid[hi])
 
 
-def search_epsilon_grid(
-    loss: Callable[[float], float],
-    bounds_rad: tuple[float, float] = EPSILON_BOUNDS_RAD,
-    resolution_rad: float = EPSILON_RESOLUTION_RAD,
-    *,
-    rel_tol: float = 0.05,
-) -> EpsilonSearch:
+def search_epsilon_grid(loss: Callable[[float], float], bounds_rad: tuple[float, float] = EPSILON_BOUNDS_RAD,
+                        resolution_rad: float = EPSILON_RESOLUTION_RAD, *, rel_tol: float = 0.05
+                        ) -> EpsilonSearch:
     """Exhaustive search: evaluate ``loss(ε)`` on every grid value (ε in rad).
 
     ``interval_rad`` is the connected run of grid values around the argmin whose
@@ -691,28 +559,14 @@ def search_epsilon_grid(
         raise IdentificationError("the loss returned NaN/inf on the ε grid")
     ib = int(np.argmin(values))
     interval = epsilon_interval(grid, lambda i: (values[i], 1.0), ib, float(values[ib]), rel_tol)
-    return EpsilonSearch(
-        epsilon_rad=float(grid[ib]),
-        loss=float(values[ib]),
-        evaluations=int(grid.size),
-        history=history,
-        interval_rad=interval,
-        method="grid",
-    )
+    return EpsilonSearch(epsilon_rad=float(grid[ib]), loss=float(values[ib]), evaluations=int(grid.size),
+                         history=history, interval_rad=interval, method="grid")
 
 
-def search_epsilon_bayes(
-    loss: Callable[[float], float],
-    bounds_rad: tuple[float, float] = EPSILON_BOUNDS_RAD,
-    resolution_rad: float = EPSILON_RESOLUTION_RAD,
-    *,
-    n_initial: int = 5,
-    max_calls: int = 40,
-    seed: int = 0,
-    stop_when: Sequence[str] | None = None,
-    rel_tol: float = 0.05,
-    ei_tol: float = 1e-3,
-) -> EpsilonSearch:
+def search_epsilon_bayes(loss: Callable[[float], float], bounds_rad: tuple[float, float] = EPSILON_BOUNDS_RAD,
+                         resolution_rad: float = EPSILON_RESOLUTION_RAD, *, n_initial: int = 5,
+                         max_calls: int = 40, seed: int = 0, stop_when: Sequence[str] | None = None,
+                         rel_tol: float = 0.05, ei_tol: float = 1e-3) -> EpsilonSearch:
     """Bayesian optimisation (GP + expected improvement) of ``loss(ε)`` on the grid.
 
     Thin wrapper over :func:`commission.ident.bayesopt.minimize_on_grid`; see
@@ -722,21 +576,8 @@ def search_epsilon_bayes(
     from commission.ident.bayesopt import minimize_on_grid
 
     grid = epsilon_grid(bounds_rad, resolution_rad)
-    res = minimize_on_grid(
-        loss,
-        grid,
-        n_initial=n_initial,
-        max_evaluations=max_calls,
-        seed=seed,
-        stop_when=tuple(stop_when) if stop_when is not None else ("ei", "local_min"),
-        rel_tol=rel_tol,
-        ei_tol=ei_tol,
-    )
-    return EpsilonSearch(
-        epsilon_rad=res.x,
-        loss=res.fun,
-        evaluations=res.evaluations,
-        history=res.history,
-        interval_rad=res.interval,
-        method="bayes",
-    )
+    res = minimize_on_grid(loss, grid, n_initial=n_initial, max_evaluations=max_calls, seed=seed,
+                           stop_when=tuple(stop_when) if stop_when is not None else ("ei", "local_min"),
+                           rel_tol=rel_tol, ei_tol=ei_tol)
+    return EpsilonSearch(epsilon_rad=res.x, loss=res.fun, evaluations=res.evaluations, history=res.history,
+                         interval_rad=res.interval, method="bayes")

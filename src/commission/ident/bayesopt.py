@@ -1,39 +1,25 @@
-"""Bayesian optimisation of a 1-D loss on a grid — a small interface over skopt.gp_minimize.
+"""Bayesian optimisation of a 1-D loss on a grid: a small interface over ``skopt.gp_minimize``.
 
-Only :func:`minimize_on_grid` is public, so the optimiser behind it could be
-swapped. Facts it is built on (LIBRARIES.md, re-measured here):
+Only :func:`minimize_on_grid` is public, so that the optimiser behind it could be swapped.
 
-* ``gp_minimize`` is the only working skopt minimiser; it runs ~7× faster with
-  one BLAS thread, so the search runs inside ``threadpool_limits(1)``.
-* An ``Integer`` space warns on re-evaluated points, silently replaces them
-  by random ones (wasted evaluations) and returns ``np.int64``. Instead the GP
-  works on a ``Real`` grid *index* in [0, n − 1]; the objective rounds it to the
-  nearest grid point and serves repeated points from a cache, so
-  ``evaluations`` counts distinct loss calls only.
-
-Design (the numbers behind it: bench/bench_backlash.py, tests/test_bayesopt.py):
-
-* Initial design: ``n_initial`` evenly spaced grid points including both ends
-  (deterministic; a monotonic profile has its minimum at an end).
-* The GP models log(loss) (``log_loss=True``, losses must be > 0): error
-  norms span decades (0.55 → 0.017 rad/s on the reference plant) and a sharp
-  minimum is much smoother in log scale.
-* Acquisition: expected improvement (the paper's eqs. 28–30), ``xi`` in log units.
-* Stopping rule (any of ``stop_when``):
-  ``"ei"``: after each GP fit, the largest EI over the *unevaluated* grid points
-  is below ``ei_tol`` (log units: 1e-3 ≈ an expected 0.1 % improvement),
-  checked from the ``min_iterations``-th GP-proposed point on;
-  ``"repeat"``: the optimiser proposed ``repeat_limit`` already evaluated grid
-  points in a row (it has nothing new to try);
-  and always: ``max_evaluations`` distinct evaluations.
-* ``"local_min"`` polish: after the GP stage, walk the grid downhill from the
-  incumbent, evaluating unevaluated neighbours, until both neighbours of the
-  incumbent are evaluated and not better. The result is then guaranteed to be
-  a local minimum on the grid, which is what an exhaustive grid would find
-  when the GP has located the right basin.
-* Interval: the connected run of grid points around the argmin whose loss
-  could be within ``rel_tol`` of the minimum: evaluated points by their loss,
-  unevaluated ones by the GP's optimistic bound exp(μ − 2σ).
+* The GP works on a ``Real`` grid *index* in [0, n − 1], rounded to the nearest grid point, with
+  repeated points served from a cache: an ``Integer`` space silently replaces re-evaluated
+  points by random ones (wasted evaluations). ``evaluations`` counts distinct loss calls.
+* One BLAS thread (``threadpool_limits(1)``): the GP refit is several times faster so.
+* Initial design: ``n_initial`` evenly spaced grid points, both ends included (deterministic; a
+  monotonic profile has its minimum at an end).
+* The GP models log(loss) (``log_loss``, losses > 0): error norms span decades and a sharp
+  minimum is much smoother in log scale. Acquisition: expected improvement (the paper's
+  eqs. 28–30), ``xi`` in the GP's units.
+* Stopping (any of ``stop_when``): ``"ei"``, the largest EI over the unevaluated grid points is
+  below ``ei_tol`` (log units: 1e-3 ≈ an expected 0.1 % improvement), from the
+  ``min_iterations``-th GP-proposed point on; ``"repeat"``, ``repeat_limit`` already evaluated
+  points proposed in a row; always, ``max_evaluations`` distinct evaluations.
+* ``"local_min"``: after the GP stage, walk the grid downhill from the incumbent until both
+  neighbours are evaluated and not better, so that the result is a local minimum on the grid.
+* Interval: the connected run of grid points around the argmin whose loss could be within
+  ``rel_tol`` of the minimum: evaluated points by their loss, the others by the GP's
+  optimistic bound exp(μ − 2σ).
 """
 
 from __future__ import annotations
@@ -58,26 +44,14 @@ _TINY = 1e-300
 class GridMinimization:
     """Result of :func:`minimize_on_grid`."""
 
-    x: float
-    """Best grid value."""
-    fun: float
-    """Loss at ``x``."""
-    index: int
-    """Index of ``x`` in the grid."""
-    evaluations: int
-    """Distinct loss evaluations."""
-    history: list[tuple[float, float]] = field(default_factory=list)
-    """(x, loss) of every distinct evaluation in evaluation order."""
-    interval: tuple[float, float] = (math.nan, math.nan)
-    """Grid values compatible with the minimum (module docstring)."""
-    stopped_by: str = ""
-    """Which rule ended the GP stage: "ei", "repeat", "max_evaluations", "exhausted"."""
-    optimizer_calls: int = 0
-    """Calls the GP optimiser made, cached repeats included."""
-
-
-class _Stop(Exception):
-    pass
+    x: float  # best grid value
+    fun: float  # loss at x
+    index: int  # index of x in the grid
+    evaluations: int  # distinct loss evaluations
+    history: list[tuple[float, float]] = field(default_factory=list)  # (x, loss), in order
+    interval: tuple[float, float] = (math.nan, math.nan)  # grid values compatible with the minimum
+    stopped_by: str = ""  # rule that ended the GP stage: "ei", "repeat", "max_evaluations", …
+    optimizer_calls: int = 0  # calls the GP optimiser made, cached repeats included
 
 
 def _expected_improvement(mu: NDArray[np.float64], sd: NDArray[np.float64], f_min: float, xi: float) -> NDArray[np.float64]:
@@ -87,23 +61,11 @@ def _expected_improvement(mu: NDArray[np.float64], sd: NDArray[np.float64], f_mi
     return imp * norm.cdf(z) + sd * norm.pdf(z)
 
 
-def minimize_on_grid(
-    fun: Callable[[float], float],
-    grid: ArrayLike,
-    *,
-    n_initial: int = 5,
-    max_evaluations: int = 40,
-    seed: int = 0,
-    stop_when: Sequence[str] = ("ei", "local_min"),
-    ei_tol: float = 1e-3,
-    xi: float = 0.01,
-    repeat_limit: int = 3,
-    rel_tol: float = 0.05,
-    log_loss: bool = True,
-    min_iterations: int = 2,
-    acq_optimizer: str = "lbfgs",
-    n_points: int = 10000,
-) -> GridMinimization:
+def minimize_on_grid(fun: Callable[[float], float], grid: ArrayLike, *, n_initial: int = 5,
+                     max_evaluations: int = 40, seed: int = 0, stop_when: Sequence[str] = ("ei", "local_min"),
+                     ei_tol: float = 1e-3, xi: float = 0.01, repeat_limit: int = 3, rel_tol: float = 0.05,
+                     log_loss: bool = True, min_iterations: int = 2, acq_optimizer: str = "lbfgs",
+                     n_points: int = 10000) -> GridMinimization:
     """Minimise ``fun`` over the values of ``grid`` (sorted, 1-D) with GP + EI.
 
     :param fun: loss, called with a grid value (Python float).
@@ -118,8 +80,8 @@ def minimize_on_grid(
         (a GP fitted on the initial design alone can be over-confident).
     :param rel_tol: relative tolerance defining ``interval``.
     :param log_loss: model log(loss) (requires loss > 0).
-    :param acq_optimizer, n_points: passed to ``gp_minimize`` ("lbfgs" measured as fast
-        as "sampling" with 200 points here: the GP refit dominates each call).
+    :param acq_optimizer, n_points: passed to ``gp_minimize`` (the GP refit, not the
+        acquisition's optimiser, dominates each call).
     :raises IdentificationError: bad arguments or a non-finite loss.
     """
     from skopt import gp_minimize
@@ -198,20 +160,9 @@ def minimize_on_grid(
     budget = max(3 * max_evaluations, len(x0) + 5)
     with threadpool_limits(1), warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        gp_minimize(
-            objective,
-            space,
-            x0=x0,
-            n_initial_points=0,
-            n_calls=budget,
-            acq_func="EI",
-            xi=xi,
-            acq_optimizer=acq_optimizer,
-            n_points=n_points,
-            random_state=int(seed),
-            callback=[callback],
-        )
-        # the last model (for the interval) if the loop stopped before refitting
+        gp_minimize(objective, space, x0=x0, n_initial_points=0, n_calls=budget, acq_func="EI", xi=xi,
+                    acq_optimizer=acq_optimizer, n_points=n_points, random_state=int(seed),
+                    callback=[callback])
     if state["stopped_by"] == "exhausted" and len(cache) < n and state["calls"] >= budget:
         state["stopped_by"] = "budget"
 
@@ -240,16 +191,9 @@ def minimize_on_grid(
     from commission.ident.backlash import epsilon_interval
 
     interval = epsilon_interval(g, loss_at, ib, fb, rel_tol)
-    return GridMinimization(
-        x=float(g[ib]),
-        fun=float(fb),
-        index=int(ib),
-        evaluations=len(cache),
-        history=history,
-        interval=interval,
-        stopped_by=str(state["stopped_by"]),
-        optimizer_calls=int(state["calls"]),
-    )
+    return GridMinimization(x=float(g[ib]), fun=float(fb), index=int(ib), evaluations=len(cache),
+                            history=history, interval=interval, stopped_by=str(state["stopped_by"]),
+                            optimizer_calls=int(state["calls"]))
 
 
 def _optimistic_bounds(model_space, grid_pts: NDArray[np.float64], n: int, log_loss: bool) -> NDArray[np.float64] | None:

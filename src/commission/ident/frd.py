@@ -1,13 +1,10 @@
 """Frequency-response data (FRD) of one torque → motor-velocity experiment (step 2).
 
-One DFT of the whole record, no window (a window would cut away the chirp's
-ends), at the resolution 1/T of the record. The ratio ``response = Y/U`` is
-what the paper calls the FRD; it is *biased* by a few percent because the
-record is not periodic (the motor starts at rest and ends moving, so the
-output DFT carries a transient term that the input's does not) and it
-contains the sampling delay. That is why :class:`FRD` also carries the raw
-DFTs ``input_dft`` and ``output_dft``: :func:`commission.ident.tffit.fit_transfer_function`
-fits them with the transient term and the delay modelled, not the ratio.
+One DFT of the whole record at its resolution 1/T, no window (a window would cut away the
+chirp's ends). The ratio ``response = Y/U`` (the paper's FRD) is biased by a few percent, since
+the record is not periodic (the output DFT carries a transient the input's does not), and holds
+the sampling delay; so :class:`FRD` also carries the raw DFTs, which
+:func:`commission.ident.tffit.fit_transfer_function` fits with both modelled.
 
 DFT convention: ``X[k] = Σ_{n=0}^{N−1} x[n]·exp(−2πj·k·n/N)`` (numpy's
 unnormalised FFT), bin k at ``k·fs/N`` Hz, N = round(fs/resolution).
@@ -32,33 +29,20 @@ _LPM_DEGREE = 2
 class FRD:
     """Frequency-response data V_m/T_ref at the DFT bins inside the band.
 
-    ``quality`` is a coherence-like indicator in [0, 1] per bin, computed by
-    the local polynomial method (Pintelon & Schoukens): around each bin
-    (±4 bins), Y is fitted as G(k)·U + T(k) with G and the transient T
-    quadratic in the bin offset; the residual estimates the part of the
-    output that no smooth linear system explains (noise, quantisation,
-    nonlinear distortion such as gear impacts), σ² per bin, and
-    ``quality = S/(S + σ²)`` with S the mean |Y|² in the window — the same
-    form as the coherence γ² = SNR/(1 + SNR). A single record has no
-    repetitions to compute a true coherence from; this is its one-record
-    substitute. Near 1: the bin is explained by a linear system.
+    ``quality`` is a one-record substitute for the coherence (a single record has no
+    repetitions): the local polynomial method (Pintelon & Schoukens) fits Y as G(k)·U + T(k)
+    within ±4 bins, G and the transient T quadratic in the bin offset; the residual σ² is what
+    no smooth linear system explains (noise, quantisation, gear impacts), and
+    ``quality = S/(S + σ²)``, S the mean |Y|² in the window, like γ² = SNR/(1 + SNR).
     """
 
-    frequency_hz: NDArray[np.float64]
-    """(M,) bin frequencies inside the band [Hz]."""
-    response: NDArray[np.complex128]
-    """(M,) the plain ratio Y/U [rad/s per N·m] (biased, see the module docstring)."""
-    quality: NDArray[np.float64]
-    """(M,) coherence-like quality indicator in [0, 1] (see the class docstring); NaN when not
-    computed (``estimate_frd(..., quality=False)``)."""
-    input_dft: NDArray[np.complex128]
-    """(M,) DFT of the torque reference at those bins [N·m] (unnormalised sum)."""
-    output_dft: NDArray[np.complex128]
-    """(M,) DFT of the motor velocity at those bins [rad/s] (unnormalised sum)."""
-    sample_rate_hz: float
-    """Sample rate of the record [Hz]."""
-    resolution_hz: float
-    """Bin spacing [Hz] = sample_rate_hz / N, N the number of samples transformed."""
+    frequency_hz: NDArray[np.float64]  # (M,) bin frequencies inside the band [Hz]
+    response: NDArray[np.complex128]  # (M,) the plain ratio Y/U [rad/s per N·m] (biased)
+    quality: NDArray[np.float64]  # (M,) in [0, 1]; NaN when not computed (quality=False)
+    input_dft: NDArray[np.complex128]  # (M,) DFT of the torque reference [N·m] (unnormalised)
+    output_dft: NDArray[np.complex128]  # (M,) DFT of the motor velocity [rad/s] (unnormalised)
+    sample_rate_hz: float  # [Hz]
+    resolution_hz: float  # bin spacing sample_rate_hz / N [Hz], N the samples transformed
 
     @property
     def n_samples(self) -> int:
@@ -110,15 +94,9 @@ def _local_quality(U: NDArray[np.complex128], Y: NDArray[np.complex128],
     return np.clip(np.nan_to_num(q, nan=0.0), 0.0, 1.0)
 
 
-def estimate_frd(
-    torque_ref: ArrayLike,
-    motor_velocity: ArrayLike,
-    sample_rate_hz: float,
-    *,
-    band_hz: tuple[float, float] = (0.1, 400.0),
-    resolution_hz: float = 0.1,
-    quality: bool = True,
-) -> FRD:
+def estimate_frd(torque_ref: ArrayLike, motor_velocity: ArrayLike, sample_rate_hz: float, *,
+                 band_hz: tuple[float, float] = (0.1, 400.0), resolution_hz: float = 0.1,
+                 quality: bool = True) -> FRD:
     """FRD of V_m/T_ref from one record, at ``resolution_hz`` inside ``band_hz``.
 
     The first N = round(fs/resolution_hz) samples are transformed (the whole
@@ -128,9 +106,8 @@ def estimate_frd(
     :param torque_ref: torque reference [N·m], one sample per tick.
     :param motor_velocity: motor velocity [rad/s] of the same ticks
         (v[k] = (x[k] − x[k−1])/Ts, the drive's convention).
-    :param quality: compute :attr:`FRD.quality` (the local polynomial method: 80 % of this
-        function's time, 23 of 28 ms on a 10 s record); False: it is NaN, for FRDs that are
-        only compared or fitted (step 5's simulated responses, the paper method's refits).
+    :param quality: compute :attr:`FRD.quality` (most of this function's time); False: NaN,
+        for FRDs that are only compared or fitted.
     :raises IdentificationError: the signals have different lengths or
         non-finite samples; the record is shorter than 1/resolution_hz; the
         band reaches above Nyquist or holds no bin; the torque does not excite
@@ -142,9 +119,7 @@ def estimate_frd(
     if not (np.isfinite(fs) and fs > 0.0):
         raise IdentificationError(f"sample rate {sample_rate_hz!r} Hz is not a positive number")
     if u.size != y.size:
-        raise IdentificationError(
-            f"torque_ref has {u.size} samples but motor_velocity has {y.size}"
-        )
+        raise IdentificationError(f"torque_ref has {u.size} samples but motor_velocity has {y.size}")
     if not (np.isfinite(resolution_hz) and resolution_hz > 0.0):
         raise IdentificationError(f"resolution {resolution_hz!r} Hz is not a positive number")
     n = int(round(fs / resolution_hz))
@@ -162,9 +137,7 @@ def estimate_frd(
     k_lo = max(1, int(np.ceil((f_lo - tol) / df)))
     k_hi = int(np.floor((f_hi + tol) / df))
     if not (f_lo < f_hi) or k_hi < k_lo:
-        raise IdentificationError(
-            f"band {f_lo:g}–{f_hi:g} Hz holds no DFT bin at {df:g} Hz resolution"
-        )
+        raise IdentificationError(f"band {f_lo:g}–{f_hi:g} Hz holds no DFT bin at {df:g} Hz resolution")
     u, y = u[:n], y[:n]
 
     # output: flat or saturated (clipped at a limit for a stretch of ≥ 1 % of the record)
@@ -193,20 +166,11 @@ def estimate_frd(
         raise IdentificationError(f"torque_ref has no energy at {k0 * df:g} Hz inside the band")
     total_y = float(np.sum(np.abs(Y[1:]) ** 2))
     if float(np.sum(np.abs(Yb) ** 2)) <= 1e-12 * total_y:
-        raise IdentificationError(
-            f"motor_velocity has no energy in the band {f_lo:g}–{f_hi:g} Hz"
-        )
+        raise IdentificationError(f"motor_velocity has no energy in the band {f_lo:g}–{f_hi:g} Hz")
     if quality:
         with threadpool_limits(limits=1, user_api="blas"):  # many tiny problems
             q = _local_quality(U, Y, bins)
     else:
         q = np.full(bins.size, np.nan)
-    return FRD(
-        frequency_hz=bins * df,
-        response=Yb / Ub,
-        quality=q,
-        input_dft=Ub,
-        output_dft=Yb,
-        sample_rate_hz=fs,
-        resolution_hz=df,
-    )
+    return FRD(frequency_hz=bins * df, response=Yb / Ub, quality=q, input_dft=Ub, output_dft=Yb,
+               sample_rate_hz=fs, resolution_hz=df)

@@ -1,43 +1,31 @@
 """The paper's own procedure (steps 4–6 on top of an FRD fit), as a reproducible mode.
 
-Reading of the paper (hybrid-identification-backlash, Fig. 5) implemented here:
+Reading of the paper (Fig. 5) implemented here:
 
-* **Step 4** — the paper's eqs. 21–24 simulate v̂ = P̂(s)·(T_ref − T̂_s), which
-  feeds a shaft torque into the *whole* two-mass plant P̂ and is algebraically
-  inconsistent with it. The sane reading used here: map P̂ to physical
-  parameters (:func:`commission.ident.twomass.from_velocity_tf`) and simulate
-  the two-mass model *with the dead zone* between the masses
-  (:func:`commission.ident.backlash.simulate_deadzone`), driven by the measured
-  T_ref, with the fit's delay (``delay_samples = round(delay_s·fs)``; one
-  sample is the drive convention already inside the simulator). Loss: the
-  paper's eq. 31, L(ε) = max_t |v_m − v̂_m|. ε is searched on the paper's grid
-  [0.01°, 1°] step 0.01° by Bayesian optimisation (or the exhaustive grid).
-* **No backlash**: the range cannot say "none"; the loss is also evaluated at
-  ε = 0 and, if L(0) ≤ (1 + rel_tol)·L(ε*), the iteration reports ε = 0 and
-  ``backlash_detected = False``.
-* **Step 5** — FRD of the simulated output vs the measured FRD, both by the
-  same estimator from the same torque, so their common biases (leakage,
-  sampling delay) cancel. ``frd_error`` = sqrt(mean_k |Ĝ_sim(k) − G_meas(k)|² /
-  |G_meas(k)|²) over the bins in ``frd_band_hz`` — the relative RMS of the
-  complex difference, each bin weighted by 1/|G_meas| so that the decades of
-  the FRD count alike. Done when ``frd_error ≤ frd_tol``.
-* **Step 6** — remove the backlash's effect and refit (step 3). Two readings:
-  ``correction="output"`` (default): subtract the simulated nonlinear part from
-  the measurement, v_lin = v_m − (v̂_m(ε*) − v̂_m(0)); exact in the model if P̂
-  and ε* are right. ``correction="input"``: the paper's eq. 25–26, FRD of
-  v_m against T̂_input = T_ref + n̂ with n̂ the internal backlash torque of the
-  simulation (:func:`commission.ident.backlash.nonlinear_torque`; the paper's
-  −T̂_s) — approximate, because n̂ also acts on the load, which eq. 25 ignores.
-  ``correction="input_filtered"``: the consistent input-side version,
-  T̂_input = T_ref + F(s)·n̂ with F = (J_l s² + B_l s)/(J_l s² + (B_l + D) s + K)
-  = 1 − G_ml/G_mm, which accounts for the reaction on the load (n̂ filtered by
-  ``scipy.signal.lsim``, linear interpolation between ticks).
-  Iterate while ``frd_error`` decreases, at most ``max_iterations`` times; the
-  result is the iteration with the smallest ``frd_error``.
+* **Step 4**: the paper's eqs. 21–24 feed a shaft torque into the *whole* plant P̂, which is
+  inconsistent with it; instead P̂ is mapped to physical parameters
+  (:func:`commission.ident.twomass.from_velocity_tf`) and the two-mass model with the dead zone
+  between the masses is simulated (:func:`commission.ident.backlash.simulate_deadzone`), driven
+  by the measured T_ref with the fit's delay (``delay_samples = round(delay_s·fs)``). Loss: eq.
+  31, L(ε) = max_t |v_m − v̂_m|, searched on the paper's grid [0.01°, 1°] step 0.01° by
+  Bayesian optimisation (or exhaustively).
+* **No backlash**: the range cannot say "none", so L(0) is evaluated too; if
+  L(0) ≤ (1 + rel_tol)·L(ε*) the pass reports ε = 0 and ``backlash_detected = False``.
+* **Step 5**: the FRD of the simulated output against the measured one, both by the same
+  estimator from the same torque so that their common biases (leakage, delay) cancel:
+  ``frd_error`` = sqrt(mean_k |Ĝ_sim − G_meas|² / |G_meas|²) over ``frd_band_hz`` (each decade
+  counts alike). Done when ``frd_error ≤ frd_tol``.
+* **Step 6**: remove the backlash's effect and refit (step 3). ``correction="output"``
+  (default): v_lin = v_m − (v̂_m(ε*) − v̂_m(0)), exact in the model if P̂ and ε* are right.
+  ``"input"``: the paper's eqs. 25–26, T̂_input = T_ref + n̂ with n̂ the internal backlash
+  torque (:func:`commission.ident.backlash.nonlinear_torque`), approximate because n̂ also acts
+  on the load. ``"input_filtered"``: T̂_input = T_ref + F(s)·n̂, F = (J_l s² + B_l s)/(J_l s² +
+  (B_l + D) s + K) = 1 − G_ml/G_mm, which accounts for that reaction.
+  Passes repeat while ``frd_error`` decreases, at most ``max_iterations``; the result is the
+  pass with the smallest ``frd_error``.
 
-METHOD.md predicts (and the bench shows) that this procedure is only as good
-as the linear fit it starts from: with a biased fit the loss grows
-monotonically with ε and the search returns 0.01°.
+The procedure is only as good as the linear fit it starts from (METHOD.md): with a biased fit
+the loss grows monotonically with ε and the search returns 0.01°.
 """
 
 from __future__ import annotations
@@ -87,22 +75,14 @@ LinearFit = tuple[ArrayLike, ArrayLike, float] | TwoMassParameters | _FitLike
 class PaperIteration:
     """One pass of steps 4–5 (and the refit of step 6 that produced ``params``)."""
 
-    index: int
-    """0 = the linear fit given to :func:`paper_identify`."""
-    params: TwoMassParameters
-    """Linear two-mass parameters used in this pass."""
-    delay_s: float
-    """Delay of the linear fit [s] (simulated as round(delay_s·fs) samples)."""
-    epsilon_rad: float
-    """ε found by step 4 [rad] (0 if L(0) is as good, see ``backlash_detected``)."""
-    backlash_detected: bool
-    """False if ε = 0 explains the data as well as the best ε of the grid."""
-    loss: float
-    """Paper loss (eq. 31) at ``epsilon_rad`` [rad/s]."""
-    frd_error: float
-    """Step-5 FRD mismatch (module docstring), dimensionless."""
-    search: EpsilonSearch
-    """The ε search of this pass."""
+    index: int  # 0 = the linear fit given to paper_identify
+    params: TwoMassParameters  # linear two-mass parameters of this pass
+    delay_s: float  # delay of the linear fit [s] (simulated as round(delay_s·fs) samples)
+    epsilon_rad: float  # ε of step 4 [rad] (0 if L(0) is as good, see backlash_detected)
+    backlash_detected: bool  # False if ε = 0 explains the data as well as the grid's best ε
+    loss: float  # paper loss (eq. 31) at epsilon_rad [rad/s]
+    frd_error: float  # step-5 FRD mismatch (module docstring) [-]
+    search: EpsilonSearch  # the ε search of this pass
 
     @property
     def epsilon_deg(self) -> float:
@@ -119,22 +99,19 @@ class PaperIdentification:
     frd_error: float
     backlash_detected: bool
     iterations: tuple[PaperIteration, ...]
+    #: "frd_tol" (close enough), "frd_error increased", "max_iterations", "no backlash detected"
+    #: (step 6 has nothing to remove) or "refit failed: …" (step 6 gave no physical plant).
     stop_reason: str
-    """"frd_tol" (close enough), "frd_error increased", "max_iterations",
-    "no backlash detected" (step 6 has nothing to remove), or
-    "refit failed: …" (step 6 gave no physical two-mass model)."""
+    #: Wall time [s] of "search" (step 4), "frd" (steps 2/5/6), "fit" (step 3 refits), "simulate"
+    #: (steps 5/6) and "total".
     timings_s: dict[str, float] = field(default_factory=dict)
-    """Wall time per stage [s]: "search" (step 4), "frd" (steps 2/5/6 FRDs),
-    "fit" (step 3 refits), "simulate" (steps 5/6 simulations), "total"."""
 
     @property
     def epsilon_deg(self) -> float:
         return math.degrees(self.epsilon_rad)
 
 
-def frd_error(
-    reference: _FRDLike, other: _FRDLike, band_hz: tuple[float, float] = (1.0, 400.0)
-) -> float:
+def frd_error(reference: _FRDLike, other: _FRDLike, band_hz: tuple[float, float] = (1.0, 400.0)) -> float:
     """sqrt(mean_k |G_other − G_ref|² / |G_ref|²) over the common bins inside ``band_hz``.
 
     :raises IdentificationError: the FRDs are on different bins, or no bin in the band.
@@ -175,24 +152,13 @@ def _load_reaction_filter(params: TwoMassParameters, n: NDArray[np.float64], fs:
 
 
 def paper_identify(
-    torque_ref: ArrayLike,
-    motor_velocity: ArrayLike,
-    sample_rate_hz: float,
-    linear_fit: LinearFit,
-    *,
-    search: Literal["bayes", "grid"] = "bayes",
-    bounds_rad: tuple[float, float] = EPSILON_BOUNDS_RAD,
+    torque_ref: ArrayLike, motor_velocity: ArrayLike, sample_rate_hz: float, linear_fit: LinearFit, *,
+    search: Literal["bayes", "grid"] = "bayes", bounds_rad: tuple[float, float] = EPSILON_BOUNDS_RAD,
     resolution_rad: float = EPSILON_RESOLUTION_RAD,
-    correction: Literal["output", "input", "input_filtered"] = "output",
-    max_iterations: int = 5,
-    frd_tol: float = 0.01,
-    frd_band_hz: tuple[float, float] = (1.0, 400.0),
-    rel_tol: float = 0.05,
-    seed: int = 0,
-    bayes_kwargs: dict[str, Any] | None = None,
-    fixed_epsilon_rad: float | None = None,
-    estimate_frd: Callable[..., Any] | None = None,
-    fit_transfer_function: Callable[..., Any] | None = None,
+    correction: Literal["output", "input", "input_filtered"] = "output", max_iterations: int = 5,
+    frd_tol: float = 0.01, frd_band_hz: tuple[float, float] = (1.0, 400.0), rel_tol: float = 0.05,
+    seed: int = 0, bayes_kwargs: dict[str, Any] | None = None, fixed_epsilon_rad: float | None = None,
+    estimate_frd: Callable[..., Any] | None = None, fit_transfer_function: Callable[..., Any] | None = None,
     from_velocity_tf: Callable[[Any, Any], TwoMassParameters] | None = None,
 ) -> PaperIdentification:
     """The paper's steps 4–6 given a linear fit (step 3), iterated (module docstring).
@@ -200,28 +166,23 @@ def paper_identify(
     :param torque_ref: torque reference [N·m], shape (N,).
     :param motor_velocity: measured motor velocity [rad/s], shape (N,), drive convention.
     :param sample_rate_hz: [Hz].
-    :param linear_fit: ``(num, den, delay_s)`` of V_m/T_ref, an object with
-        ``num``/``den``/``delay_s`` (e.g. a ``TransferFunctionFit``), or
-        ``TwoMassParameters`` (delay = one sample, the drive convention).
+    :param linear_fit: ``(num, den, delay_s)`` of V_m/T_ref, an object with ``num``/``den``/``delay_s``
+        (a ``TransferFunctionFit``), or ``TwoMassParameters`` (delay: one sample).
     :param search: "bayes" (paper) or "grid" (exhaustive).
-    :param correction: step-6 reading, "output", "input" or "input_filtered"
-        (module docstring).
+    :param correction: step-6 reading, "output", "input" or "input_filtered" (module docstring).
     :param max_iterations: passes of steps 4–5 at most (≥ 1); step 6 runs between passes.
     :param frd_tol: step-5 "close enough" threshold on ``frd_error``.
     :param fixed_epsilon_rad: skip step 4 and use this ε in every pass (to study
         step 6 on its own, e.g. with the true ε).
-    :param estimate_frd, fit_transfer_function, from_velocity_tf: steps 2, 3
-        and the coefficient → parameter map; default: the package's
-        ``commission.ident.frd.estimate_frd``,
-        ``commission.ident.tffit.fit_transfer_function`` and
-        ``commission.ident.twomass.from_velocity_tf``.
+    :param estimate_frd, fit_transfer_function, from_velocity_tf: steps 2, 3 and the
+        coefficient → parameter map; default: the package's own.
     :raises IdentificationError: bad inputs, or the initial fit is not a physical plant.
     """
     t_total = time.perf_counter()
     if estimate_frd is None:
         from commission.ident.frd import estimate_frd as _est
 
-        # the method never reads the quality indicator: skip it (80 % of an FRD's time)
+        # the method never reads the quality indicator: skip it (most of an FRD's time)
         estimate_frd = functools.partial(_est, quality=False)
     if fit_transfer_function is None:
         from commission.ident.tffit import fit_transfer_function as _fit
@@ -326,13 +287,6 @@ def paper_identify(
 
     best = min(iterations, key=lambda r: r.frd_error)
     timings["total"] = time.perf_counter() - t_total
-    return PaperIdentification(
-        params=best.params,
-        epsilon_rad=best.epsilon_rad,
-        delay_s=best.delay_s,
-        frd_error=best.frd_error,
-        backlash_detected=best.backlash_detected,
-        iterations=tuple(iterations),
-        stop_reason=stop_reason,
-        timings_s=timings,
-    )
+    return PaperIdentification(params=best.params, epsilon_rad=best.epsilon_rad, delay_s=best.delay_s,
+                               frd_error=best.frd_error, backlash_detected=best.backlash_detected,
+                               iterations=tuple(iterations), stop_reason=stop_reason, timings_s=timings)

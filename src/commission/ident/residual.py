@@ -1,87 +1,54 @@
-"""The drift-free torque residual of the motor equation (METHOD.md, "What works" 1–3).
+"""The motor-equation torque residual and the load-state observer behind it (METHOD.md, "What works").
 
-Instead of simulating the whole two-mass system open loop from τ_ref (which
-drifts: a 1 % DC-gain error moves the motor ~0.2 rad/s), the *load* alone is
-simulated, driven through the dead-zone spring by the *measured* motor
-position. The motor equation is then checked as a torque balance::
+The load alone is simulated, driven through the dead-zone spring by the *measured* motor
+position, and the motor equation is checked as a torque balance at samples 1 … N−2::
 
-    r = J_m·ẍ_m + B_m·ẋ_m + τ_s(sim) − τ_ref          [N·m]
+    e = J_m·ẍ_m + B_m·ẋ_m (+ F_cm·tanh(ẋ_m/v_s)) + τ_s(sim) − τ      [N·m]
 
-Nothing integrates open loop (the spring ties the simulated load to the real
-motor), so the residual has no drift, and its minimum in ε is sharp.
+Nothing integrates open loop against the real motor, so e has no drift and its minimum in ε is
+sharp. :func:`residual_vector` is the objective of :mod:`commission.ident.estimator`.
 
-Sample alignment (derived, not tuned)
--------------------------------------
-Data convention of the drive: at tick k the encoder is latched, x[k] = x_m(k·Ts),
-v[k] = (x[k] − x[k−1])/Ts, then τ_ref[k] is applied by a zero-order hold over
-[k·Ts, (k+1)·Ts). Integrating ẍ twice against the triangle kernel
-w(s) = 1 − |s| on s ∈ [−1, 1] (time k·Ts + s·Ts) gives the exact identity::
+Observer (:class:`Observer`, applied inside :func:`_simulate_load`). Over many impacts a load
+simulated open loop parts from the real one (the bouncing in the gap is chaotic). So after each
+sample interval k is integrated, its residual e_k, low-passed by a causal biquad, moves the
+simulated load by ``gain``·ẽ_k [rad per N·m] (and, with a load encoder, by a fraction of its
+distance to the measured position). The move is spread as a ramp over the next interval, so the
+load's state stays continuous and contact and separation are located as always: the residual
+stays a continuous function of the parameters. e is then the one-step prediction error of a
+fixed-gain predictor of the load state; gain 0 (:data:`OPEN_LOOP`) is the open-loop residual.
 
-    (x[k+1] − 2x[k] + x[k−1]) / Ts² = ∫ w(s)·ẍ_m(k+s) ds
+Sample alignment (derived, not tuned). At tick k the encoder is latched, x[k] = x_m(k·Ts), then
+τ_ref[k] is held over [k·Ts, (k+1)·Ts). The triangle kernel w(s) = 1 − |s| on s ∈ [−1, 1] gives
+the exact identity (x[k+1] − 2x[k] + x[k−1])/Ts² = ∫ w(s)·ẍ_m(k+s) ds, so every term of the motor
+equation is averaged with the same kernel: τ_ref (ZOH) exactly as (τ_ref[k−1] + τ_ref[k])/2;
+ẋ_m as (x[k+1] − x[k−1])/(2·Ts) (O(Ts²)); τ_s = K·y + D·ẏ from the integrals of y the simulation
+accumulates over each interval, ∫ w·ẏ by parts (y is continuous across contact and separation,
+so the impact torque D·ẏ is integrated exactly). This is METHOD.md's "one sample of delay"
+handled in the time domain; the backward-difference velocity is not used.
 
-so every term of the motor equation is averaged with the same kernel:
+Load simulation. The motor position between samples is a cubic (:func:`motor_interpolant`). In
+contact the load obeys a linear ODE driven by it: a whole interval is mapped exactly
+(:func:`contact_map`), parts of an interval (between events) and contact steps with load Coulomb
+friction take RK4 steps; in the gap the load decays analytically (viscous) or by RK4 with
+friction. Contact and separation are located inside the step (Hermite interpolant of the gap
+variable checked at interior points for grazes, then bisection), so the residual is a smooth
+function of ε and the load parameters, as finite-difference Jacobians need.
 
-* τ_ref (ZOH):  ∫ w·τ_ref = (τ_ref[k−1] + τ_ref[k]) / 2          (exact)
-* B_m·ẋ_m:      ∫ w·ẋ_m  ≈ (x[k+1] − x[k−1]) / (2·Ts)             (O(Ts²·ẍ'))
-* τ_s = K·y + D·ẏ:  ∫ w·y from integrals of y the simulation accumulates over
-  each sample interval, and ∫ w·ẏ = (ȳ_k − ȳ_{k−1})/Ts by parts (y is continuous
-  across contact and separation, so the impact torque D·ẏ is integrated exactly).
+Optional terms: motor Coulomb friction, a regressor linear in F_cm (``ResidualProblem.coulomb``,
+the triangle average of tanh(ẋ_m/v_s) by Gauss–Legendre); load Coulomb friction F_cl·tanh(ẋ_l/v_s)
+in the load simulation, where explicit RK4 steps in the smooth sign's stiff zone are cut so that
+rate·h stays below RK4's stability limit (:data:`_STIFF_STEP`) and v_s stays the stated one; a
+first-order current-loop lag T_c·τ̇ = τ_ref − τ (:func:`lagged_torque`, exact for a held τ_ref).
 
-This is the "one sample of delay" of METHOD.md handled in the time domain: half
-a sample from the ZOH (τ_ref[k−1] and τ_ref[k] both act on x[k±1]) and the
-backward-difference velocity is not used at all (positions are).
-
-Load simulation
----------------
-The motor position between samples is a cubic through the latched positions
-(:func:`motor_interpolant`). In contact the load obeys a linear ODE driven by that cubic: a whole
-sample interval is mapped exactly (:func:`contact_map`, one matrix exponential per simulation);
-parts of an interval (between events), and every contact step when load Coulomb friction is
-modelled, take one RK4 step each. In the gap the load decays analytically (viscous). The exact
-map changed no result on the plants the model describes; on the impact-rich stiff light 200 Hz
-bench plant the residual at the true parameters fell from 2.1 % to 1.35 % of τ_ref (one RK4
-step per sample is off by ~1e-8 per interval at ω·Ts = 0.16, and chaotic impacts amplify it).
-A simulation without load friction takes 1.7 instead of 2.8 ms (10 s at 8 kHz); the joint fit
-models load friction only when the ε search found friction (:mod:`commission.ident.hybrid`).
-Contact and separation are located inside the step (Hermite interpolation of
-the gap variable, checked at interior points so that grazing contacts are
-found, then bisection), so the residual is a smooth function of ε and of the
-load parameters — a requirement for finite-difference Jacobians.
-
-Optional terms (issue 8)
-------------------------
-* Motor Coulomb friction F_cm·tanh(ẋ_m/v_s): a regressor of the motor equation, linear in
-  F_cm (``ResidualProblem.coulomb``: triangle average of tanh(ẋ_m/v_s), ẋ_m from the
-  position interpolant, 8-point Gauss–Legendre per interval).
-* Load Coulomb friction F_cl·tanh(ẋ_l/v_s): in the load simulation (contact: inside RK4;
-  gap: RK4 on Ts/4 sub-steps instead of the exact viscous decay). Explicit RK4 on the stiff
-  zone of tanh needs rate·h below its stability limit 2.785, rate = (F_cl/J_l)/v_s: a step
-  whose load speed is (or may get) within a few v_s of zero is cut into ceil(rate·h/2)
-  sub-steps (:func:`_simulate_load`, :func:`_gap_state`, :data:`_STIFF_STEP`), so v_s stays the
-  stated one. (Widening v_s instead, as before, biased
-  ε by 0.025° at 0.03 N·m per side: v_s became 10× the stated one.)
-* Current-loop lag T_c·τ̇ = τ_ref − τ: :func:`lagged_torque`, exact for held τ_ref.
-Measured with the true parameters on sim_drive's plant (0.01 N·m per side, sim v_s = 1e-3):
-RMS residual / RMS τ_ref 0.0018–0.0026 for v_s = 1e-3 … 1e-2 here (0.12 without friction;
-0.039 with all the friction lumped on the motor side), the excess over the 0.0003 noise
-floor sitting in the few stick windows at velocity reversals (burst-dropped in the fit).
-
-Motor position between samples: :func:`motor_interpolant` ("local", Catmull–Rom, by
-default; a global spline spreads each impact's kink and biased impact-rich plants).
-
-Filtering
----------
-The second difference of a quantised position is blue noise. The residual is
-low-passed zero-phase (Butterworth, ``scipy.signal.sosfiltfilt``) and then
-decimated to about twice the cut-off, so that its samples are roughly
-independent (the effective degrees of freedom used for intervals in
-:mod:`commission.ident.jointfit`).
+Filtering. The second difference of a quantised position is blue noise, so the residual is
+low-passed zero-phase (Butterworth, as ``scipy.signal.sosfiltfilt``) and decimated to about twice
+the cut-off, where its samples are roughly independent.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -101,7 +68,9 @@ __all__ = [
     "motor_interpolant",
     "torque_residual",
     "residual_vector",
-    "predictor_residual",
+    "motor_part",
+    "Observer",
+    "OPEN_LOOP",
 ]
 
 #: Interior points checked per step (and per remaining part of a step) for grazing events.
@@ -112,10 +81,8 @@ _HERMITE_BOUND = 0.15
 #: Load speeds within this many v_s of zero are in the smooth sign's stiff zone (tanh' < 2e-4 outside).
 _STIFF_ZONE = 5.0
 #: rate·h per RK4 sub-step where the smooth sign is stiff (rate = (F_cl/J_l)/v_s; RK4 is stable up
-#: to 2.785). At 2 the fast mode decays by R(−2) = 1/3 per sub-step (exactly: e^−2 = 0.14). Measured
-#: against Radau (tests/test_residual.py's stiff-friction case): load velocity within 2e-8 of its
-#: range (4e-9 at 1, as before); bench/bench_seeds.py 0.03 N·m seeds 1–9: 4.1 → 3.4 s mean, 17.6k
-#: instead of 35k sub-steps per simulation, same tolerances met. (2.5 gained no more.)
+#: to 2.785, and at 2 the fast mode still decays by R(−2) = 1/3 per sub-step): half the sub-steps of
+#: 1, close to Radau and within the bench's tolerances (measured: see bench/results/RESULTS.md).
 _STIFF_STEP = 2.0
 #: |v_l|/v_s beyond which the smooth sign is ±1 in float64 (tanh(x) = 1 − 2e^(−2x): 1 − 4e−22 at
 #: 25, below half an ulp) at both ends of a contact interval: the load friction is then a
@@ -123,14 +90,15 @@ _STIFF_STEP = 2.0
 _SATURATED = 25.0
 #: Partial steps per sample interval before the rest is finished in the current mode.
 _MAX_PARTS = 200
+#: Most sub-steps per interval in the stiff zone of the load's smooth sign. Only parameters far
+#: from any plant need more (F_cl/J_l ≫ the plant's: a load inertia driven to zero by a fit); there
+#: the simulation may go unstable, and the fit steps back from its non-finite residual.
+_MAX_STIFF_PARTS = 64
 
 
-# ----------------------------------------------------------------------------
-# compiled core (module level so that numba's cache=True works)
-# error_model="numpy": no Python division checks in the loops; the step functions inlined.
-# Same arithmetic, bit-identical results; measured 4.0 → 2.5 ms per load simulation
-# (10 s, 8 kHz, reference plant).
-# ----------------------------------------------------------------------------
+# --- compiled core (module level, so that numba's cache=True works) ----------
+# error_model="numpy" drops Python's division checks from the loops and the step functions are
+# inlined: the same arithmetic, bit-identical results, markedly faster.
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _motor(c: NDArray[np.float64], k: int, s: float) -> tuple[float, float]:
     """Motor position [rad] and d/ds [rad per sample] at k + s from spline coefficients c (N−1, 4)."""
@@ -180,7 +148,7 @@ def _gap_state(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: fl
     # stiff zone of the smooth sign: |v̇| ≤ decay·|v| + cj bounds how near zero v can get
     rate_ts = cj * ivs * ts / _STIFF_STEP
     if rate_ts > n and abs(vl) * ivs < _STIFF_ZONE + (decay * abs(vl) + cj) * ts * ivs:
-        n = int(math.ceil(rate_ts))
+        n = min(int(math.ceil(rate_ts)), _MAX_STIFF_PARTS)
     h = ts / n
     x = xl
     v = vl
@@ -313,20 +281,31 @@ def _exact_contact(cm: NDArray[np.float64], c: NDArray[np.float64], k: int, Ts: 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K: float, D: float,
                    eps: float, xl0: float, vl0: float, F_l: float, ivs: float, cm: NDArray[np.float64],
-                   friction: bool) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], int]:
-    """Load driven by the spline motor position through the dead-zone spring.
+                   friction: bool, motor_part: NDArray[np.float64], gain: float,
+                   lp: NDArray[np.float64], load_meas: NDArray[np.float64], load_gain: float
+                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+                              NDArray[np.float64], int, NDArray[np.float64], NDArray[np.float64]]:
+    """Load driven by the spline motor position through the dead-zone spring, corrected after every
+    sample by the observer (``gain`` = 0: open loop; module docstring).
 
-    Returns (I0, I1, xl, vl, events): I0[k] = ∫₀¹ y(k+s) ds, I1[k] = ∫₀¹ s·y(k+s) ds over each of
-    the N−1 sample intervals [rad]; xl, vl the load state at the N samples; events the number of
-    contact/separation events located.
+    Returns (I0, I1, xl, vl, events, e, el): I0[k] = ∫₀¹ y(k+s) ds, I1[k] = ∫₀¹ s·y(k+s) ds over each
+    of the N−1 sample intervals [rad]; xl, vl the load state at the N samples; events the number of
+    contact/separation events located; e the motor-equation residual at samples 1 … N−2 [N·m],
+    ``motor_part`` (J_m·Δ²x/Ts² + B_m·v (+ F_cm·sgn) − τ) + the triangle-averaged shaft torque; el the
+    load position's prediction error x_l,sim − x_l,meas at samples 0 … N−1 before each correction
+    [rad] (zeros without a load encoder).
 
-    Events. Separation (contact → gap): the penetration p = side·y is scanned on the cubic
-    Hermite interpolant of the step (end values and slopes, interior points for grazing), the
-    first root is bracketed and bisected on the interpolant, then polished by Newton steps on the
-    *actual* RK4 step length (p and dp/ds of the RK4 solution), so the switch happens where the
-    integrated trajectory really reaches the boundary (matters for stiff, impact-rich plants:
-    the impact torque D·ẏ is switched off there). Contact (gap → contact): the load moves
-    analytically and the motor is the spline, so |z| = ε is bisected on the exact z(s).
+    Observer: e_k is known once interval k is integrated (the triangle kernel spans k − 1 … k + 1);
+    the causal biquad ``lp`` = (b0, b1, b2, a1, a2) filters it, and the correction ``gain``·ẽ_k
+    (minus ``load_gain`` times the load-position error when ``load_meas`` has shape (N,), else (0,))
+    is applied as a ramp on the motor position the load sees over the next interval: a jump of the
+    load's position would switch modes without event location and kink the cost.
+
+    Events. Separation: the penetration p = side·y is scanned on the step's cubic Hermite
+    interpolant (interior points for grazes), bisected, then polished by Newton steps on the actual
+    RK4 step length, so that the impact torque D·ẏ is switched off where the integrated trajectory
+    really reaches the boundary. Contact: the load moves analytically and the motor is the spline,
+    so |z| = ε is bisected on the exact z(s).
     """
     m = c.shape[0]
     I0 = np.zeros(m)
@@ -349,9 +328,22 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
     elif z < -eps:
         side = -1.0
     events = 0
+    E = np.zeros(m - 1)
+    EL = np.zeros(m + 1)
+    has_load = load_meas.shape[0] == m + 1
+    w1 = 0.0
+    w2 = 0.0
+    cs = np.empty((1, 4))
+    offset = 0.0  # corrections applied so far [rad]: the load sits at xl + offset
+    ramp = 0.0    # correction applied over the current interval [rad]
     for k in range(m):
-        xl_out[k] = xl
+        xl_out[k] = xl + offset
         vl_out[k] = vl
+        # the motor as the load sees it: x_m − offset − ramp·s (the load moved by the corrections)
+        cs[0, 0] = c[k, 0]
+        cs[0, 1] = c[k, 1]
+        cs[0, 2] = c[k, 2] - ramp
+        cs[0, 3] = c[k, 3] - offset
         s = 0.0
         guard = 0
         while s < 1.0:
@@ -359,41 +351,39 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
             if guard > _MAX_PARTS:  # pathological chattering: finish the step in the current mode
                 break
             if side != 0.0:
-                # --- contact: one step (exact or RK4, plus quadrature of y and s·y) to the end of the
-                # interval, or to the end of a sub-step where the load Coulomb smooth sign is stiff: its
-                # rate cj·ivs at v = 0 needs rate·h ≤ _STIFF_STEP, so a step whose load speed is within
-                # _STIFF_ZONE·v_s of zero, or could get there at the start's acceleration, is cut
-                # into ceil(rate·h/_STIFF_STEP) parts (the while loop takes them as it takes partial steps)
+                # --- contact: one step (exact or RK4, plus quadrature of y and s·y) to the interval's end,
+                # cut into ceil(rate·h/_STIFF_STEP) parts where the load speed is, or may get, within
+                # _STIFF_ZONE·v_s of zero (the stiff zone of the Coulomb smooth sign, rate cj·ivs)
                 send = 1.0
                 if cj != 0.0:
                     rate_h = cj * ivs * (1.0 - s) * Ts / _STIFF_STEP
                     if rate_h > 1.0:
-                        xa, da = _motor(c, k, s)
+                        xa, da = _motor(cs, 0, s)
                         _, a0 = _accel(xa, da / Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
                         if abs(vl) * ivs < _STIFF_ZONE + abs(a0) * (1.0 - s) * Ts * ivs:
-                            send = s + (1.0 - s) / math.ceil(rate_h)
+                            send = s + (1.0 - s) / min(math.ceil(rate_h), _MAX_STIFF_PARTS)
                 h = (send - s) * Ts
                 exact = False
                 if send == 1.0 and s == 0.0:
                     if not friction:  # the common case: a whole interval, linear
-                        xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, c, k, Ts, xl, vl, side, eps, 0.0)
+                        xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, cs, 0, Ts, xl, vl, side, eps, 0.0)
                         exact = True
                     elif abs(vl) * ivs > _SATURATED:
                         # the load moves fast enough that the smooth sign is ±1 in float64 over the
                         # whole interval (checked at its end): a constant force, the step is exact
                         sg = 1.0 if vl > 0.0 else -1.0
-                        xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, c, k, Ts, xl, vl, side, eps,
+                        xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, cs, 0, Ts, xl, vl, side, eps,
                                                                   sg * cj / kj)
                         exact = vn * sg * ivs > _SATURATED
                 if not exact:
-                    if send == 1.0:  # with the interval's end a constant (measured: a few % faster)
-                        xn, vn, i0, i1, p1, dp1e = _rk4_contact(c, k, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj,
+                    if send == 1.0:  # the interval's end as a constant: a few % faster
+                        xn, vn, i0, i1, p1, dp1e = _rk4_contact(cs, 0, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj,
                                                                 cj, ivs)
                     else:
-                        xn, vn, i0, i1, p1, dp1e = _rk4_contact(c, k, s, send, Ts, xl, vl, side, eps, kj, dj, bj,
+                        xn, vn, i0, i1, p1, dp1e = _rk4_contact(cs, 0, s, send, Ts, xl, vl, side, eps, kj, dj, bj,
                                                                 cj, ivs)
                 if eps > 0.0:
-                    xa, da = _motor(c, k, s)
+                    xa, da = _motor(cs, 0, s)
                     p0 = side * (xa - xl - side * eps)
                     dp0 = side * (da / Ts - vl) * h
                     dp1 = dp1e * (send - s)
@@ -419,14 +409,14 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                                 lo = mid
                         se = s + hi * (send - s)
                         # Newton on the actual RK4 step length
-                        xn, vn, i0, i1, pe, dpe = _rk4_contact(c, k, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+                        xn, vn, i0, i1, pe, dpe = _rk4_contact(cs, 0, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
                         for _ in range(4):
                             if abs(pe) <= 1e-15 or dpe == 0.0:
                                 break
                             sn = se - pe / dpe
                             if not (s < sn <= send):
                                 break
-                            xq, vq, iq0, iq1, pq, dpq = _rk4_contact(c, k, s, sn, Ts, xl, vl, side, eps,
+                            xq, vq, iq0, iq1, pq, dpq = _rk4_contact(cs, 0, s, sn, Ts, xl, vl, side, eps,
                                                                      kj, dj, bj, cj, ivs)
                             if abs(pq) >= abs(pe):
                                 break
@@ -447,8 +437,8 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
             else:
                 # --- gap: free viscous decay of the load, exact; motor: the spline, exact
                 h = (1.0 - s) * Ts
-                xa, da = _motor(c, k, s)
-                xc, dc = _motor(c, k, 1.0)
+                xa, da = _motor(cs, 0, s)
+                xc, dc = _motor(cs, 0, 1.0)
                 xn, vn = _gap_state(xl, vl, bj, h, cj, ivs, Ts)
                 z0 = xa - xl
                 z1 = xc - xn
@@ -476,7 +466,7 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                 zh = 0.0
                 for it in range(_BISECT_ITERATIONS + 1):
                     mid = hi if it == 0 else 0.5 * (lo + hi)
-                    xq, _ = _motor(c, k, s + mid * (1.0 - s))
+                    xq, _ = _motor(cs, 0, s + mid * (1.0 - s))
                     xlq, _ = _gap_state(xl, vl, bj, mid * h, cj, ivs, Ts)
                     zq = xq - xlq
                     if zq >= eps or zq <= -eps:
@@ -498,9 +488,22 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
                 side = 1.0 if zh > 0.0 else -1.0
                 s = se
                 events += 1
-    xl_out[m] = xl
+        offset += ramp
+        ramp = 0.0
+        if k >= 1:
+            e = motor_part[k - 1] + K * (I1[k - 1] + I0[k] - I1[k]) + D * (I0[k] - I0[k - 1]) / Ts
+            E[k - 1] = e
+            if gain != 0.0:
+                ef = lp[0] * e + w1
+                w1 = lp[1] * e - lp[3] * ef + w2
+                w2 = lp[2] * e - lp[4] * ef
+                ramp = gain * ef
+        if has_load:
+            EL[k + 1] = xl + offset - load_meas[k + 1]
+            ramp -= load_gain * EL[k + 1]
+    xl_out[m] = xl + offset
     vl_out[m] = vl
-    return I0, I1, xl_out, vl_out, events
+    return I0, I1, xl_out, vl_out, events, E, EL
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -583,9 +586,7 @@ def _shaft_torque_tri(I0: NDArray[np.float64], I1: NDArray[np.float64], K: float
     return out
 
 
-# ----------------------------------------------------------------------------
-# public API
-# ----------------------------------------------------------------------------
+# --- public API --------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class ResidualProblem:
     """Everything about one recording the residual needs, computed once.
@@ -593,46 +594,32 @@ class ResidualProblem:
     Arrays indexed by the residual's samples k = 1 … N−2 (length N−2) unless stated.
     """
 
-    sample_rate_hz: float
-    """Sample rate [Hz]."""
-    spline: NDArray[np.float64]
-    """Cubic coefficients of the motor position (:func:`motor_interpolant`), shape (N−1, 4),
-    per sample interval, s ∈ [0, 1]."""
-    acceleration: NDArray[np.float64]
-    """(x[k+1] − 2x[k] + x[k−1]) / Ts² [rad/s²]."""
-    velocity: NDArray[np.float64]
-    """(x[k+1] − x[k−1]) / (2·Ts) [rad/s]."""
-    torque: NDArray[np.float64]
-    """(τ_ref[k−1] + τ_ref[k]) / 2 [N·m]."""
-    sos: NDArray[np.float64]
-    """Zero-phase low-pass (second-order sections) applied to the residual."""
-    cutoff_hz: float
-    """Low-pass cut-off [Hz]."""
-    decimation: int
-    """Keep every ``decimation``-th filtered sample (≈ independent samples)."""
-    zi: NDArray[np.float64]
-    """Steady-state initial conditions of the sections (scipy.signal.sosfilt_zi)."""
-    padlen: int
-    """Odd-extension length at each end (as scipy.signal.sosfiltfilt)."""
-    initial_twist_rad: float
-    """x_m − x_l at sample 0 [rad] (0: the gears start centred in the gap, at rest)."""
-    load_position: NDArray[np.float64] | None
-    """Measured load position at samples 0 … N−1 [rad], when a load encoder is present."""
+    sample_rate_hz: float  # [Hz]
+    spline: NDArray[np.float64]  # motor-position cubic per interval, s ∈ [0, 1] (N−1, 4)
+    acceleration: NDArray[np.float64]  # (x[k+1] − 2x[k] + x[k−1]) / Ts² [rad/s²]
+    velocity: NDArray[np.float64]  # (x[k+1] − x[k−1]) / (2·Ts) [rad/s]
+    torque: NDArray[np.float64]  # (τ_ref[k−1] + τ_ref[k]) / 2 [N·m]
+    sos: NDArray[np.float64]  # zero-phase low-pass of the residual (second-order sections)
+    cutoff_hz: float  # its cut-off [Hz]
+    decimation: int  # keep every decimation-th filtered sample (≈ independent samples)
+    zi: NDArray[np.float64]  # steady-state initial conditions of the sections (sosfilt_zi)
+    padlen: int  # odd-extension length at each end (as scipy.signal.sosfiltfilt)
+    initial_twist_rad: float  # x_m − x_l at sample 0 [rad] (0: at rest, centred in the gap)
+    load_position: NDArray[np.float64] | None  # measured, samples 0 … N−1 [rad]; None: no encoder
     # pre-filtered, decimated regressors of the motor equation
     acceleration_f: NDArray[np.float64]
     velocity_f: NDArray[np.float64]
     torque_f: NDArray[np.float64]
-    coulomb: NDArray[np.float64] | None = None
-    """Motor Coulomb regressor tanh(ẋ_m/v_s), triangle-averaged, at samples 1 … N−2 [-]."""
-    coulomb_f: NDArray[np.float64] | None = None
-    """Low-passed, decimated motor Coulomb regressor tanh(ẋ_m/v_s) [-] (the column of F_cm)."""
+    coulomb: NDArray[np.float64] | None = None  # tanh(ẋ_m/v_s), triangle-averaged, 1 … N−2 [-]
+    coulomb_f: NDArray[np.float64] | None = None  # the same low-passed, decimated: F_cm's column
+    #: Low-passed, decimated Δτ_ref/Ts [N·m/s]: the current-loop-lag column (τ ≈ τ_ref − T_c·τ̇_ref),
+    #: which starts T_c by linear projection.
     torque_rate_f: NDArray[np.float64] | None = None
-    """Low-passed, decimated Δτ_ref/Ts [N·m/s]: the first-order current-loop-lag column
-    (τ ≈ τ_ref − T_c·τ̇_ref), used to start T_c by linear projection."""
-    torque_ref: NDArray[np.float64] | None = None
-    """The raw torque reference [N·m] (samples 0 … N−1), for the lagged torque."""
-    velocity_scale_rad_s: float = 2e-3
-    """Velocity scale v_s of the smooth sign tanh(v/v_s) of both Coulomb terms [rad/s]."""
+    torque_ref: NDArray[np.float64] | None = None  # raw, samples 0 … N−1 [N·m], for lagged_torque
+    velocity_scale_rad_s: float = 2e-3  # v_s of both Coulomb terms' smooth sign tanh(v/v_s) [rad/s]
+    #: Weight (1 or 0) of each decimated motor-block sample: 0 where a sample the link lost reaches
+    #: the residual through the triangle kernel and the low-pass (None: every sample counts).
+    keep: NDArray[np.float64] | None = None
 
     @property
     def n_samples(self) -> int:
@@ -662,26 +649,21 @@ class ResidualProblem:
 class LoadSimulation:
     """The simulated load of one residual evaluation."""
 
-    shaft_torque: NDArray[np.float64]
-    """Triangle-averaged shaft torque K·y + D·ẏ at samples 1 … N−2 [N·m]."""
-    load_position: NDArray[np.float64]
-    """Simulated load position at samples 0 … N−1 [rad]."""
-    load_velocity: NDArray[np.float64]
-    """Simulated load velocity at samples 0 … N−1 [rad/s]."""
-    events: int
-    """Contact and separation events located inside steps."""
+    shaft_torque: NDArray[np.float64]  # triangle-averaged K·y + D·ẏ at samples 1 … N−2 [N·m]
+    load_position: NDArray[np.float64]  # simulated, samples 0 … N−1 [rad]
+    load_velocity: NDArray[np.float64]  # simulated, samples 0 … N−1 [rad/s]
+    events: int  # contact and separation events located inside steps
+    residual: NDArray[np.float64]  # motor equation at 1 … N−2 [N·m] (shaft torque if no motor part)
+    load_error: NDArray[np.float64]  # with a load encoder: x_l,sim − x_l,meas, 0 … N−1 [rad]
 
 
 @dataclass(frozen=True, eq=False)
 class Residual:
     """Result of :func:`torque_residual`."""
 
-    residual: NDArray[np.float64]
-    """Low-passed (not decimated) motor-equation residual at samples 1 … N−2 [N·m]."""
-    vector: NDArray[np.float64]
-    """Decimated residual vector fed to least squares [N·m] (motor block, then load block)."""
-    cost: float
-    """RMS of ``vector`` [N·m]."""
+    residual: NDArray[np.float64]  # low-passed (not decimated), samples 1 … N−2 [N·m]
+    vector: NDArray[np.float64]  # decimated, fed to least squares (motor, then load block) [N·m]
+    cost: float  # RMS of vector [N·m]
     simulation: LoadSimulation
 
 
@@ -709,6 +691,7 @@ def prepare_residual(
     initial_twist_rad: float | None = None,
     velocity_scale_rad_s: float = 2e-3,
     interpolation: str = "local",
+    lost: NDArray[np.bool_] | None = None,
 ) -> ResidualProblem:
     """Precompute the motor-side regressors of the torque residual.
 
@@ -725,6 +708,8 @@ def prepare_residual(
     :param velocity_scale_rad_s: v_s of the Coulomb terms' smooth sign tanh(v/v_s) [rad/s].
     :param interpolation: motor position between samples (:func:`motor_interpolant`):
         "local" (default) or "spline".
+    :param lost: (N,) true at samples a streamed link lost (interpolated in the record): the residual
+        samples they reach are left out (:attr:`ResidualProblem.keep`).
     """
     tau = np.asarray(torque_ref, dtype=np.float64)
     n = tau.shape[0]
@@ -771,13 +756,19 @@ def prepare_residual(
     w_dn = 0.5 * gw * (1.0 - sq)  # ∫ (1 − s)·f(s) ds: the interval after sample k
     coul = sgn[:-1] @ w_up + sgn[1:] @ w_dn
     rate = np.diff(tau)[:-1] * fs  # (τ_ref[k] − τ_ref[k−1])/Ts at samples 1 … N−2
+    keep = None
+    if lost is not None and np.any(lost):
+        # a lost sample reaches the residual at k − 1 … k + 1 and the low-pass spreads it by ~2/f_c
+        reach = int(math.ceil(2.0 * fs / cutoff_hz)) + 1
+        hit = np.convolve(np.asarray(lost, dtype=float), np.ones(2 * reach + 1), mode="same") > 0
+        keep = np.ascontiguousarray((~hit[1:-1][::decimation]).astype(float))
     return ResidualProblem(
         sample_rate_hz=fs, spline=spline, acceleration=acc, velocity=vel, torque=trq,
         sos=sos, cutoff_hz=float(cutoff_hz), decimation=decimation, zi=zi, padlen=padlen, initial_twist_rad=twist0,
         load_position=xl,
         acceleration_f=lp(acc), velocity_f=lp(vel), torque_f=lp(trq),
         coulomb=coul, coulomb_f=lp(np.ascontiguousarray(coul)), torque_rate_f=lp(np.ascontiguousarray(rate)),
-        torque_ref=np.ascontiguousarray(tau), velocity_scale_rad_s=float(velocity_scale_rad_s),
+        torque_ref=np.ascontiguousarray(tau), velocity_scale_rad_s=float(velocity_scale_rad_s), keep=keep,
     )
 
 
@@ -787,11 +778,8 @@ def motor_interpolant(x: NDArray[np.float64], interpolation: str = "local") -> N
     ``"spline"``: the not-a-knot cubic spline (C², error O(Ts⁴) on smooth motion). It is
     *global*: at an impact the motor acceleration jumps (D·ẏ switches) and the spline spreads
     that kink over many samples (ringing, decaying ×0.27 per sample), biasing the simulated
-    load around every impact. ``"local"``: cubic Hermite with central-difference slopes
-    (Catmull–Rom, C¹, error O(Ts³)): a kink disturbs only the two intervals beside it.
-    Measured with the true parameters (bench plants, 24-bit encoder, 1e-4 N·m noise), RMS of
-    the kept residual / RMS τ_ref: stiff 300 Hz (impact-rich) 0.0106 → 0.00054, bursts
-    55 % → 47 %; reference, ζ = 0.07 and stiff light 200 Hz: 0.00030 either way.
+    load around every impact. ``"local"`` (the default): cubic Hermite with central-difference
+    slopes (Catmull–Rom, C¹, error O(Ts³)): a kink disturbs only the two intervals beside it.
     """
     n = x.shape[0]
     if interpolation == "spline":
@@ -847,8 +835,67 @@ def _lagged_torque(u: NDArray[np.float64], e: float, g1: float, g2: float) -> ND
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class Observer:
+    """The load-state observer of the residual (module docstring; gain 0: open loop).
+
+    The residual is then the one-step prediction error of a fixed-gain predictor whose state is the
+    load's, the estimator a prediction-error method (Ljung, *System Identification*, ch. 7). The
+    low-pass keeps the encoder's quantization noise out of the correction. The gain is fixed for a
+    fit, from a bandwidth and the start's K and D: as a parameter the fit would take the largest,
+    since a stronger correction always lowers the residual.
+    """
+
+    gain_rad_per_nm: float = 0.0  # load-position correction per N·m of filtered residual
+    #: Causal biquad on the residual before the correction: (b0, b1, b2, a1, a2).
+    lowpass: NDArray[np.float64] = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0, 0.0]))
+    bandwidth_hz: float = 0.0  # 1 − exp(−2π·bandwidth/fs) of a twist error is removed per sample
+    filter_hz: float | None = None  # cut-off of the low-pass on the residual [Hz] (None: none)
+    load_gain: float = 0.0  # with a load encoder: fraction of the way to its position per sample
+
+    @classmethod
+    def design(cls, sample_rate_hz: float, bandwidth_hz: float, filter_hz: float | None, K: float,
+               D: float, load_encoder: bool = False) -> Observer:
+        """An observer removing 1 − exp(−2π·bandwidth/fs) of a twist error per sample.
+
+        A load-position step δ changes the next residual by (K + D·fs)·δ — the damping's share
+        through the triangle-averaged twist rate — so the gain is that fraction over K + D·fs:
+        normalised by K alone the correction is unstable on damped, soft plants (D·fs ≫ K).
+        """
+        fs = float(sample_rate_hz)
+        alpha = 1.0 - math.exp(-2.0 * math.pi * bandwidth_hz / fs) if bandwidth_hz > 0 else 0.0
+        lp = np.array([1.0, 0.0, 0.0, 0.0, 0.0])
+        if filter_hz is not None and filter_hz < 0.45 * fs:
+            b, a = butter(2, filter_hz, fs=fs)
+            lp = np.array([b[0], b[1], b[2], a[1], a[2]])
+        else:
+            filter_hz = None
+        return cls(gain_rad_per_nm=alpha / (float(K) + float(D) * fs), lowpass=lp,
+                   bandwidth_hz=float(bandwidth_hz), filter_hz=filter_hz,
+                   load_gain=alpha if load_encoder else 0.0)
+
+
+#: The open-loop load simulation.
+OPEN_LOOP = Observer()
+_NONE = np.zeros(0)
+
+
+def motor_part(problem: ResidualProblem, J_m: float, B_m: float, *, coulomb_motor_nm: float = 0.0,
+               lag_s: float = 0.0) -> NDArray[np.float64]:
+    """J_m·Δ²x_m/Ts² + B_m·v_m + F_cm·sgn(v_m) − τ at samples 1 … N−2 [N·m]: the motor equation
+    without the shaft torque (τ: the torque behind a first-order current loop of time constant
+    ``lag_s`` [s], see :func:`lagged_torque`)."""
+    trq = problem.torque if lag_s <= 0.0 or problem.torque_ref is None else \
+        lagged_torque(problem.torque_ref, problem.sample_rate_hz, lag_s)
+    out = J_m * problem.acceleration + B_m * problem.velocity - trq
+    if coulomb_motor_nm != 0.0 and problem.coulomb is not None:
+        out = out + coulomb_motor_nm * problem.coulomb
+    return np.ascontiguousarray(out)
+
+
 def simulate_load(problem: ResidualProblem, J_l: float, B_l: float, K: float, D: float,
-                  epsilon_rad: float, coulomb_load_nm: float | None = None) -> LoadSimulation:
+                  epsilon_rad: float, coulomb_load_nm: float | None = None, *,
+                  motor: NDArray[np.float64] | None = None, observer: Observer = OPEN_LOOP) -> LoadSimulation:
     """Simulate the load driven by the measured motor position (see module docstring).
 
     :param coulomb_load_nm: load-side Coulomb friction F_cl [N·m], as F_cl·tanh(ẋ_l/v_s)
@@ -856,27 +903,37 @@ def simulate_load(problem: ResidualProblem, J_l: float, B_l: float, K: float, D:
         are exact without the term; with it, at any value, 0 included, they are exact where the
         load moves faster than ``_SATURATED``·v_s (the smooth sign is then ±1, the friction a
         constant force) and RK4 elsewhere — a choice made by the load's speed, not by F_cl, so the
-        simulation is one smooth function of F_cl down to its bound 0, as finite differences
-        need. (Choosing by F_cl == 0 put the difference between an exact step and an RK4 one,
-        what ~3e-10 N·m of friction changes, into the F_cl column: 2 % off on the reference
-        plant.)
+        simulation is one smooth function of F_cl down to its bound 0, as finite differences need.
+    :param motor: :func:`motor_part` (N−2,); needed by an observer, and gives the residual.
+    :param observer: the load-state correction (default: none, open loop).
     """
     Ts = 1.0 / problem.sample_rate_hz
     xl0 = -problem.initial_twist_rad  # motor position is shifted to start at 0
     F_l = 0.0 if coulomb_load_nm is None else float(coulomb_load_nm)
     ivs = 1.0 / problem.velocity_scale_rad_s
+    gain = observer.gain_rad_per_nm
+    if motor is None:
+        if gain != 0.0:
+            raise ValueError("an observer needs the motor part of the residual")
+        motor = np.zeros(problem.n_samples - 2)
     cm = contact_map(Ts, float(K) / float(J_l), float(D) / float(J_l), float(B_l) / float(J_l))
-    I0, I1, xl, vl, events = _simulate_load(problem.spline, Ts, float(J_l), float(B_l), float(K),
-                                           float(D), max(float(epsilon_rad), 0.0), xl0, 0.0, F_l, ivs, cm,
-                                           coulomb_load_nm is not None)
+    load = problem.load_position if problem.load_position is not None and observer.load_gain != 0.0 else _NONE
+    I0, I1, xl, vl, events, e, el = _simulate_load(problem.spline, Ts, float(J_l), float(B_l), float(K), float(D),
+                                                   max(float(epsilon_rad), 0.0), xl0, 0.0, F_l, ivs, cm,
+                                                   coulomb_load_nm is not None, motor, float(gain), observer.lowpass,
+                                                   load, float(observer.load_gain))
     ts = _shaft_torque_tri(I0, I1, float(K), float(D), Ts)
-    return LoadSimulation(shaft_torque=ts, load_position=xl, load_velocity=vl, events=int(events))
+    if load.shape[0] == 0 and problem.load_position is not None:
+        el = xl - problem.load_position
+    return LoadSimulation(shaft_torque=ts, load_position=xl, load_velocity=vl, events=int(events), residual=e,
+                          load_error=el)
 
 
 def torque_residual(problem: ResidualProblem, J_m: float, J_l: float, B_m: float, B_l: float,
                     K: float, D: float, epsilon_rad: float, *,
                     load_weight_nm_per_rad: float | None = None, coulomb_motor_nm: float = 0.0,
-                    coulomb_load_nm: float | None = None, lag_s: float = 0.0) -> Residual:
+                    coulomb_load_nm: float | None = None, lag_s: float = 0.0,
+                    observer: Observer = OPEN_LOOP) -> Residual:
     """r = J_m·Δ²x_m/Ts² + B_m·v_m + F_cm·tanh(v_m/v_s) + τ_s(sim) − τ(τ_ref), low-passed
     zero-phase, and its RMS cost.
 
@@ -886,15 +943,12 @@ def torque_residual(problem: ResidualProblem, J_m: float, J_l: float, B_m: float
     :param coulomb_load_nm: load-side Coulomb friction F_cl [N·m] (in the load simulation;
         None: not modelled, see :func:`simulate_load`).
     :param lag_s: time constant T_c = 1/ω_c of a first-order current loop [s] (0: ideal).
+    :param observer: the load-state correction (:class:`Observer`; default none).
     """
-    sim = simulate_load(problem, J_l, B_l, K, D, epsilon_rad, coulomb_load_nm)
-    vec = _vector(problem, sim, J_m, B_m, K, load_weight_nm_per_rad, coulomb_motor_nm, lag_s)
-    trq = problem.torque if lag_s <= 0.0 or problem.torque_ref is None else \
-        lagged_torque(problem.torque_ref, problem.sample_rate_hz, lag_s)
-    raw = J_m * problem.acceleration + B_m * problem.velocity + sim.shaft_torque - trq
-    if coulomb_motor_nm != 0.0 and problem.coulomb is not None:
-        raw = raw + coulomb_motor_nm * problem.coulomb
-    res = sosfiltfilt(problem.sos, raw)
+    motor = motor_part(problem, J_m, B_m, coulomb_motor_nm=coulomb_motor_nm, lag_s=lag_s)
+    sim = simulate_load(problem, J_l, B_l, K, D, epsilon_rad, coulomb_load_nm, motor=motor, observer=observer)
+    vec = _vector(problem, sim, K, load_weight_nm_per_rad)
+    res = sosfiltfilt(problem.sos, sim.residual)
     cost = float(np.sqrt(np.mean(vec * vec)))
     return Residual(residual=res, vector=vec, cost=cost, simulation=sim)
 
@@ -902,119 +956,18 @@ def torque_residual(problem: ResidualProblem, J_m: float, J_l: float, B_m: float
 def residual_vector(problem: ResidualProblem, J_m: float, J_l: float, B_m: float, B_l: float,
                     K: float, D: float, epsilon_rad: float, *,
                     load_weight_nm_per_rad: float | None = None, coulomb_motor_nm: float = 0.0,
-                    coulomb_load_nm: float | None = None, lag_s: float = 0.0) -> NDArray[np.float64]:
+                    coulomb_load_nm: float | None = None, lag_s: float = 0.0,
+                    observer: Observer = OPEN_LOOP) -> NDArray[np.float64]:
     """Only the decimated residual vector of :func:`torque_residual` (the fast path for fits)."""
-    sim = simulate_load(problem, J_l, B_l, K, D, epsilon_rad, coulomb_load_nm)
-    return _vector(problem, sim, J_m, B_m, K, load_weight_nm_per_rad, coulomb_motor_nm, lag_s)
+    motor = motor_part(problem, J_m, B_m, coulomb_motor_nm=coulomb_motor_nm, lag_s=lag_s)
+    sim = simulate_load(problem, J_l, B_l, K, D, epsilon_rad, coulomb_load_nm, motor=motor, observer=observer)
+    return _vector(problem, sim, K, load_weight_nm_per_rad)
 
 
-def _vector(problem: ResidualProblem, sim: LoadSimulation, J_m: float, B_m: float, K: float,
-            load_weight_nm_per_rad: float | None, coulomb_motor_nm: float = 0.0,
-            lag_s: float = 0.0) -> NDArray[np.float64]:
-    d = problem.decimation
-    ts_f = _filtfilt_decimate(problem.sos, problem.zi, sim.shaft_torque, problem.padlen, d)
-    vec = J_m * problem.acceleration_f + B_m * problem.velocity_f + ts_f - problem.lagged_torque_f(lag_s)
-    if coulomb_motor_nm != 0.0 and problem.coulomb_f is not None:
-        vec = vec + coulomb_motor_nm * problem.coulomb_f
+def _vector(problem: ResidualProblem, sim: LoadSimulation, K: float,
+            load_weight_nm_per_rad: float | None) -> NDArray[np.float64]:
+    vec = problem.lowpass(sim.residual)
     if problem.load_position is not None:
         w = float(K if load_weight_nm_per_rad is None else load_weight_nm_per_rad)
-        vec = np.concatenate((vec, w * (sim.load_position - problem.load_position)[1:-1:d]))
+        vec = np.concatenate((vec, w * sim.load_error[1:-1:problem.decimation]))
     return vec
-
-
-# ----------------------------------------------------------------------------
-# load-state predictor (impact-rich plants)
-# ----------------------------------------------------------------------------
-#: Gain α of :func:`predictor_residual` (x_l += α·e/K after every sample). Measured at the true
-#: parameters (bench/bench_predictor.py): 100 Hz ζ 0.05 leaves 32 % of τ_ref without it, 0.10 %
-#: at α = 0.05, 0.04 % (the noise floor) at 0.1, and ε ±10 % then still costs 35–40× the truth;
-#: the reference plant stays at 0.03 % with ε ±10 % 10× it.
-PREDICTOR_GAIN = 0.1
-#: RK4 sub-steps per sample of the predictor's load simulation (fixed step, exact dead zone).
-#: Measured at the true parameters (seed 3): 100 Hz ζ 0.05 leaves 0.035 / 0.033 / 0.038 % of τ_ref
-#: with 8 / 4 / 2 sub-steps, J_l/J_m = 2 60 Hz ζ 0.07 0.031 / 0.032 / 0.033 %; 15 ms per
-#: simulation with 4.
-PREDICTOR_SUBSTEPS = 4
-
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _pred_shaft(c: NDArray[np.float64], k: int, s: float, Ts: float, x: float, v: float,
-                K: float, D: float, eps: float) -> float:
-    """Shaft torque [N·m] at k + s for load state (x, v) and the motor spline: dead zone ±eps."""
-    a3 = c[k, 0]
-    a2 = c[k, 1]
-    a1 = c[k, 2]
-    a0 = c[k, 3]
-    z = ((a3 * s + a2) * s + a1) * s + a0 - x
-    if -eps <= z <= eps:
-        return 0.0
-    vm = ((3.0 * a3 * s + 2.0 * a2) * s + a1) / Ts
-    return K * (z - eps if z > eps else z + eps) + D * (vm - v)
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _predicted_innovations(c: NDArray[np.float64], Ts: float, torque: NDArray[np.float64],
-                           acc: NDArray[np.float64], vel: NDArray[np.float64], J_m: float, B_m: float,
-                           J_l: float, B_l: float, K: float, D: float, eps: float, xl0: float,
-                           alpha: float, beta: float, nsub: int) -> NDArray[np.float64]:
-    """Motor-equation residual at samples 1 … N−2 [N·m], the load state corrected after each.
-
-    The load is stepped by RK4 on ``nsub`` fixed sub-steps per sample (dead zone exact at the
-    stage points, no event location); the shaft torque is triangle-averaged at the samples as in
-    the motor equation (Simpson per sub-step). After sample k is complete its residual e is fed
-    back as a Newton step on the shaft torque: x_l += α·e/K, v_l += β·e/(K·Ts).
-    """
-    m = c.shape[0]
-    T = np.zeros(m + 1)
-    E = np.zeros(m + 1)
-    x = xl0
-    v = 0.0
-    h = Ts / nsub
-    w = 1.0 / (6.0 * nsub)
-    for k in range(m):
-        for j in range(nsub):
-            s0 = j / nsub
-            sm = s0 + 0.5 / nsub
-            s1 = s0 + 1.0 / nsub
-            t1 = _pred_shaft(c, k, s0, Ts, x, v, K, D, eps)
-            a1 = (t1 - B_l * v) / J_l
-            v2 = v + 0.5 * h * a1
-            t2 = _pred_shaft(c, k, sm, Ts, x + 0.5 * h * v, v2, K, D, eps)
-            a2 = (t2 - B_l * v2) / J_l
-            v3 = v + 0.5 * h * a2
-            t3 = _pred_shaft(c, k, sm, Ts, x + 0.5 * h * v2, v3, K, D, eps)
-            a3 = (t3 - B_l * v3) / J_l
-            v4 = v + h * a3
-            t4 = _pred_shaft(c, k, s1, Ts, x + h * v3, v4, K, D, eps)
-            a4 = (t4 - B_l * v4) / J_l
-            x += h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
-            v += h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-            tm = 0.5 * (t2 + t3)
-            T[k] += w * ((1.0 - s0) * t1 + 4.0 * (1.0 - sm) * tm + (1.0 - s1) * t4)
-            T[k + 1] += w * (s0 * t1 + 4.0 * sm * tm + s1 * t4)
-        if k >= 1:
-            e = J_m * acc[k - 1] + B_m * vel[k - 1] + T[k] - torque[k - 1]
-            E[k] = e
-            x += alpha * e / K
-            v += beta * e / (K * Ts)
-    return E[1:-1]
-
-
-def predictor_residual(problem: ResidualProblem, J_m: float, J_l: float, B_m: float, B_l: float,
-                       K: float, D: float, epsilon_rad: float, *, gain: float = PREDICTOR_GAIN,
-                       velocity_gain: float = 0.0, substeps: int = PREDICTOR_SUBSTEPS) -> NDArray[np.float64]:
-    """The motor-equation residual with a load-state predictor, low-passed and decimated as
-    :func:`residual_vector` (motor block only; no friction or lag terms) [N·m].
-
-    The plain residual re-simulates the load open loop from the sampled motor position; over
-    many impacts of a stiff or lightly damped load that simulation decorrelates from the real
-    load (chaotic bouncing in the gap), and even the true parameters leave a large residual.
-    Here every sample's residual e corrects the simulated load (x_l += gain·e/K, v_l +=
-    velocity_gain·e/(K·Ts)), so the simulation follows the real load; ``gain = 0`` is an open-loop
-    simulation (fixed-step, a little less exact than :func:`simulate_load`).
-    """
-    e = _predicted_innovations(problem.spline, 1.0 / problem.sample_rate_hz, problem.torque,
-                               problem.acceleration, problem.velocity, float(J_m), float(B_m), float(J_l),
-                               float(B_l), float(K), float(D), max(float(epsilon_rad), 0.0),
-                               -problem.initial_twist_rad, float(gain), float(velocity_gain), int(substeps))
-    return problem.lowpass(e)

@@ -6,12 +6,11 @@ load coasts, until the teeth meet again on the other flank. Then (paper eq. 32)
 
     2ε = | ∫_{t1}^{t2} (v_m − v_l) dt | = | twist(t2) − twist(t1) |
 
-between separation t1 and re-contact t2. In contact the twist changes only
-elastically (slowly); in the gap it changes at the full relative speed. So t1 and
-t2 are found as the edges of the burst of twist rate around each reversal. Across the gap the relative speed keeps growing
-(the motor is driven, the load coasts) and the impact ends it abruptly, so
-re-contact is the burst's peak; separation is smooth, and is taken as the last
-sample before the peak where the rate is below ``rate_fraction`` of the peak.
+between separation t1 and re-contact t2. In contact the twist changes only elastically; in the
+gap at the full relative speed, which keeps growing (the motor is driven, the load coasts)
+until the impact ends it abruptly. So re-contact is the peak of the burst of twist rate around
+each reversal, and separation the last sample before it where the rate is below
+``rate_fraction`` of the peak.
 """
 
 from __future__ import annotations
@@ -31,18 +30,15 @@ class Reversal:
 
     t_separation_s: float
     t_recontact_s: float
-    gap_rad: float
-    """|∫(v_m − v_l) dt| between separation and re-contact = 2ε [rad]."""
+    gap_rad: float  # |∫(v_m − v_l) dt| between separation and re-contact = 2ε [rad]
 
 
 @dataclass(frozen=True)
 class ReversalCheck:
     """Backlash from velocity reversals (paper eq. 32)."""
 
-    epsilon_rad: float
-    """Half the median gap over all reversals [rad]."""
-    spread_rad: float
-    """Half the range of the gaps (max − min) / 2 / 2 [rad]: how much reversals disagree."""
+    epsilon_rad: float  # half the median gap over all reversals [rad]
+    spread_rad: float  # (max − min) of the gaps / 4 [rad]: how much reversals disagree on ε
     reversals: tuple[Reversal, ...]
 
     @property

@@ -1,78 +1,45 @@
 """Fit a continuous-time rational model V_m/T_ref = B(s)/A(s) to one record's DFTs (step 3).
 
-Model (Pintelon & Schoukens, frequency-domain identification), at each bin k
-of the band, s_k = j·2π·f_k, Ts = 1/fs:
+Model (Pintelon & Schoukens), at each bin k of the band, s_k = j·2π·f_k, Ts = 1/fs::
 
     Y(k) = H(s_k)·B(s_k)/A(s_k)·U(k) + F(s_k)·I(s_k)/A(s_k)
 
-* ``B/A`` — the continuous plant, deg B = num_order, A monic of den_order.
-* ``H(s) = exp(−s·delay_s)·sinc²(ω·Ts/2)`` — the sampling operator. Torque
-  applied with zero-order hold and velocity from a backward difference of the
-  latched position give exactly ``exp(−s·Ts)·sinc²(ωTs/2)`` times the
-  continuous response, up to aliasing terms of relative size (f/fs)³ (4e-5 at
-  400 Hz, 8 kHz). The delay (one sample by default: ½ ZOH + ½ difference) is
-  18° at 400 Hz; the sinc² is 0.8 % in magnitude at 400 Hz. A 2/3 model absorbs
-  neither; measured on the reference plant: without the delay J_m +4 %,
-  J_l −5 %, D −37 %; without the sinc² J_m, J_l, K, D 0.2–0.6 % off, instead of
-  ~0.001 % with both. A drive's current loop adds about its time constant to that
-  delay; ``fit_delay`` fits the excess (the hybrid start does, when the lag is a candidate).
-* ``I/A`` — the transient (leakage) term: the record is not periodic (the
-  motor starts at rest and ends moving), so Y carries a term that U does not.
-  I is a real polynomial of degree den_order (proper: the backward-difference
-  state adds a constant), and F(s) = exp(+s·Ts/2)/sinc(ωTs/2) maps the
-  continuous-time transient onto the sampled one (exact per mode up to
-  O((p·Ts)²)). Without this term the whole-record ratio Y/U is biased 3–7 %
-  and J_l is 0.4 % (reference plant) to 22 % (J_l/J_m = 4, 25 Hz) off; with
-  neither term (the plain ratio) J_l and K are up to 50 % off
-  (bench/bench_linear.py).
+* ``B/A``: the continuous plant, deg B = num_order, A monic of degree den_order.
+* ``H(s) = exp(−s·delay_s)·sinc²(ω·Ts/2)``: the sampling operator. A zero-order-hold torque
+  and a backward-difference velocity give exactly ``exp(−s·Ts)·sinc²(ωTs/2)`` times the
+  continuous response, up to aliasing of relative size (f/fs)³. A 2/3 model absorbs neither
+  the delay nor the sinc², and either one left out biases J_m, J_l and D. A drive's current
+  loop adds about its time constant to the delay; ``fit_delay`` fits that excess.
+* ``I/A``: the transient (leakage) term. The record is not periodic (the motor starts at rest
+  and ends moving), so Y carries a term that U does not; I is a real polynomial of degree
+  den_order and F(s) = exp(+s·Ts/2)/sinc(ωTs/2) maps the continuous transient onto the
+  sampled one. Without it the plain ratio Y/U is biased by a few percent.
 
-Why continuous and not discrete: a discrete model B(z⁻¹)/A(z⁻¹) with the exact
-transient is fitted just as well, but converting it back to the six
-continuous coefficients (poles by log, numerator by matching the ZOH
-discretisation) is badly conditioned at fs/f_max = 20: measured, it gave a
-non-physical model on 4 of 5 plants. The continuous fit with H and F above
-reaches the quantisation floor (~0.001 % on J_m, J_l, K) directly.
+Continuous rather than discrete: a discrete model fits as well, but converting it back to the
+six continuous coefficients is badly conditioned at fs/f_max = 20.
 
-Algorithm. Sanathanan–Koerner iterations on the raw DFTs — linear least
-squares in the coefficients of A, B, I for the equation error A·Y − H·B·U − F·I,
-divided by |A_prev| — iterated to convergence (Levy, the first iteration,
-leaves J_l 2 % off with the default weighting and 64 % with relative weighting
-on heavy-load plants; with backlash SK needs 10–60 iterations), then a
-Gauss–Newton polish (scipy
-``least_squares``) of the true output error Y − Ŷ (SK's fixed point differs
-from that minimum when the data are not exactly of the model, e.g. with
-backlash). The frequency axis is scaled by the band's top frequency.
+Algorithm: Sanathanan–Koerner iterations (linear least squares in the coefficients of A, B, I
+for the equation error A·Y − H·B·U − F·I, divided by |A_prev|), iterated to convergence
+(Levy's first iteration alone is far off), then a Gauss–Newton polish of the true output
+error Y − Ŷ, whose minimum differs from SK's fixed point when the data are not exactly of the
+model (backlash). The frequency axis is scaled by the band's top frequency.
 
-Weighting (``weighting``), per bin, on the output error:
-``"balanced"`` (default) 1/√(|Y|·median|Y|), the geometric mean of
-``"uniform"`` (maximum likelihood for the white quantisation noise of an
-encoder-derived velocity; dominated by the large low-frequency bins) and
-``"relative"`` 1/|Y| (every decade of the FRD counts the same). All three
-reach the quantisation floor without backlash; with 0.4° of backlash
-"balanced" had the smallest worst-case error over five plants (J_m ≤ 3 %,
-B_m + B_l ≤ 0.5 %; see bench/bench_linear.py) — relative weighting chases the
-distorted resonance region, uniform weighting the DC bins.
+Weighting of the output error per bin: ``"balanced"`` (default) 1/√(|Y|·median|Y|), the
+geometric mean of ``"uniform"`` (maximum likelihood for white encoder noise, dominated by the
+large low-frequency bins) and ``"relative"`` 1/|Y| (every decade counts alike): with backlash
+it had the smallest worst-case error, relative weighting chasing the distorted resonance and
+uniform weighting the DC bins (bench/bench_linear.py).
 
-Physical constraint (2/3 models, ``physical=True``): when the free optimum
-maps to no physical two-mass plant (a negative B_l, D… — typical with
-backlash, where the B_m/B_l split is ill-conditioned), the fit is redone in the
-physical parameters (J_m, J_l, K > 0; B_m, B_l, D ≥ 1e-6·(B_m + B_l)) with the
-transient coefficients by variable projection, so that
-:func:`commission.ident.twomass.from_velocity_tf` always succeeds on the
-result. When the free optimum is physical it is also the constrained one and
-is returned unchanged.
+Physical constraint (2/3 models, ``physical=True``): when the free optimum maps to no physical
+two-mass plant (typical with backlash, where the B_m/B_l split is ill-conditioned), the fit is
+redone in the physical parameters (J_m, J_l, K > 0; B_m, B_l, D ≥ 1e-6·(B_m + B_l)) with the
+transient by variable projection, so that :func:`commission.ident.twomass.from_velocity_tf`
+always succeeds on the result.
 
-What to trust. Without backlash (24-bit encoder, no noise) all six parameters
-come out at the quantisation floor (≤ 0.01 %; B_m and B_l separately ≤ 0.3 %).
-In general the split of the viscous friction between B_m and B_l (and D) is
-ill-conditioned from six coefficients — errors of 50–100 % are typical as soon
-as the data are not exactly of the model — while B_m + B_l (the DC gain), J_m
-(the high-frequency gain) and the modal frequencies are reliable. With 0.4° of
-backlash the fit describes the best linear approximation of a nonlinear
-plant: measured J_m ≤ 3.3 %, B_m + B_l ≤ 0.5 %, but J_l up to +21 %, K up to
-−49 % and the resonance up to −30 % on soft or stiff plants whose gears
-separate at resonance (bench/bench_linear.py). It is the start of the joint
-fit with backlash, not the answer.
+What to trust: B_m + B_l (the DC gain), J_m (the high-frequency gain) and the modal
+frequencies; the split of the friction between B_m, B_l and D is ill-conditioned. With
+backlash the fit is the best linear approximation of a nonlinear plant: a start for the
+time-domain estimator (:mod:`commission.ident.estimator`), not the answer.
 """
 
 from __future__ import annotations
@@ -100,29 +67,20 @@ _DAMPING_FLOOR = 1e-6
 class TransferFunctionFit:
     """A continuous rational model of V_m/T_ref fitted to FRD, plus the modelled delay."""
 
-    num: NDArray[np.float64]
-    """Numerator in descending powers of s (continuous V_m/T_ref without the delay)."""
-    den: NDArray[np.float64]
-    """Denominator in descending powers of s, den[0] == 1."""
-    delay_s: float
-    """Pure delay modelled [s] (one sample, 1/fs, by default)."""
+    num: NDArray[np.float64]  # descending powers of s (continuous V_m/T_ref, without the delay)
+    den: NDArray[np.float64]  # descending powers of s, den[0] == 1
+    delay_s: float  # pure delay modelled [s] (one sample, 1/fs, by default)
+    #: Relative RMS error of the modelled output DFT over the band, sqrt(mean_k |Y − Ŷ|² / |Y|²),
+    #: Ŷ = H·B/A·U + F·I/A (plant and transient).
     fit_error: float
-    """Relative RMS error of the modelled output DFT over the band,
-    sqrt(mean_k |Y(k) − Ŷ(k)|² / |Y(k)|²), Ŷ = H·B/A·U + F·I/A (plant and
-    transient). ~1e-3 for a 24-bit encoder and no backlash."""
-    iterations: int
-    """Sanathanan–Koerner iterations done (the polish not counted)."""
-    converged: bool
-    """True when the SK iterations met ``tol`` within ``max_iterations``."""
-    sample_rate_hz: float = 0.0
-    """Sample rate of the data [Hz]; > 0 adds the hold's sinc² in :meth:`response`."""
-    constrained: bool = False
-    """True when the free optimum was not physical and the physical refit was used."""
+    iterations: int  # Sanathanan–Koerner iterations done (the polish not counted)
+    converged: bool  # the SK iterations met tol within max_iterations
+    sample_rate_hz: float = 0.0  # of the data [Hz]; > 0 adds the hold's sinc² in response()
+    constrained: bool = False  # the free optimum was not physical and the physical refit was used
 
     def response(self, f_hz: ArrayLike) -> NDArray[np.complex128]:
-        """Modelled sampled response at ``f_hz`` [rad/s per N·m], *including* the delay
-        (and the sinc²(f/fs) of zero-order hold + backward difference when the
-        fit modelled the sampling)."""
+        """Modelled sampled response at ``f_hz`` [rad/s per N·m], *including* the delay (and the
+        sinc²(f/fs) of zero-order hold + backward difference when the fit modelled the sampling)."""
         f = np.asarray(f_hz, dtype=float)
         s = 2j * np.pi * f
         h = np.exp(-s * self.delay_s)
@@ -136,44 +94,29 @@ class TransferFunctionFit:
         return np.polyval(self.num, s) / np.polyval(self.den, s)
 
 
-def fit_transfer_function(
-    frd: FRD,
-    *,
-    num_order: int = 2,
-    den_order: int = 3,
-    delay_s: float | None = None,
-    transient: bool = True,
-    max_iterations: int = 100,
-    tol: float = 1e-9,
-    weighting: Weighting = "balanced",
-    polish: bool = True,
-    physical: bool = True,
-    fit_delay: bool = False,
-) -> TransferFunctionFit:
+def fit_transfer_function(frd: FRD, *, num_order: int = 2, den_order: int = 3, delay_s: float | None = None,
+                          transient: bool = True, max_iterations: int = 100, tol: float = 1e-9,
+                          weighting: Weighting = "balanced", polish: bool = True, physical: bool = True,
+                          fit_delay: bool = False) -> TransferFunctionFit:
     """Fit B(s)/A(s) (order num_order/den_order) to ``frd``'s raw DFTs (see the module docstring).
 
-    :param delay_s: pure delay to model [s]. ``None`` = one sample (1/fs),
-        the drive convention (ZOH torque, backward-difference velocity), and
-        the hold's sinc² is modelled too. An explicit value models that delay
-        and the sinc²; 0.0 models neither (a plain continuous fit).
-    :param transient: model the transient/leakage term I/A. ``False`` with
-        ``delay_s=0.0`` is the naive fit of the plain ratio Y/U.
-    :param max_iterations: cap on Sanathanan–Koerner iterations.
-    :param tol: SK stops when the relative change of the coefficient vector
-        falls below ``tol``.
+    :param delay_s: pure delay to model [s]. ``None`` = one sample (1/fs), the drive convention,
+        with the hold's sinc²; an explicit value models that delay and the sinc²; 0.0 neither.
+    :param transient: model the transient term I/A (``False`` with ``delay_s=0.0``: the naive
+        fit of the plain ratio Y/U).
+    :param max_iterations, tol: SK stops after ``max_iterations`` or when the relative change of
+        the coefficient vector falls below ``tol``.
     :param weighting: "balanced" (default), "relative" or "uniform".
     :param polish: Gauss–Newton on the true output error after SK.
-    :param physical: for 2/3 models, refit in physical parameters when the
-        free optimum is not a physical two-mass plant.
-    :param fit_delay: also fit an extra delay δ ≥ 0 beyond ``delay_s`` (jointly with the
-        coefficients, in the polish) — a drive's current loop acts on the FRD like a delay
-        of about its time constant — and keep it when it removes enough of the output error
-        (``_DELAY_GAIN``); ``delay_s`` of the result then includes it.
-    :raises IdentificationError: bad orders or delay, too few bins, an output
-        DFT that is zero, or a singular/non-finite least-squares problem.
+    :param physical: for 2/3 models, refit in physical parameters when the free optimum is not
+        a physical two-mass plant.
+    :param fit_delay: also fit an extra delay δ ≥ 0 beyond ``delay_s`` in the polish (a current
+        loop acts on the FRD like a delay of about its time constant), kept when it removes enough
+        of the output error (``_DELAY_GAIN``); ``delay_s`` of the result then includes it.
+    :raises IdentificationError: bad orders or delay, too few bins, an output DFT that is zero,
+        or a singular/non-finite least-squares problem.
     """
-    # Small dense problems: one BLAS thread is several times faster than many on a
-    # loaded machine (measured 0.5 s vs 7.5 s for a constrained fit on 2 busy cores).
+    # small dense problems: one BLAS thread is several times faster than many on a loaded machine
     with threadpool_limits(limits=1, user_api="blas"):
         return _fit(frd, num_order, den_order, delay_s, transient, max_iterations, tol,
                     weighting, polish, physical, fit_delay)
@@ -203,9 +146,7 @@ def _fit(frd: FRD, num_order: int, den_order: int, delay_s: float | None, transi
     n_i = den_order if transient else -1
     n_unknown = na + nb + (n_i + 1)
     if M < n_unknown:
-        raise IdentificationError(
-            f"{M} frequency bins are too few for {n_unknown} unknown coefficients"
-        )
+        raise IdentificationError(f"{M} frequency bins are too few for {n_unknown} unknown coefficients")
     absY = np.abs(Y)
     if np.any(absY == 0.0) or not (np.all(np.isfinite(Y)) and np.all(np.isfinite(U))):
         raise IdentificationError("the output DFT is zero or not finite at some bin: cannot fit")
@@ -245,9 +186,7 @@ def _fit(frd: FRD, num_order: int, den_order: int, delay_s: float | None, transi
         rr = np.concatenate([(rhs * rw).real, (rhs * rw).imag])
         cn = np.linalg.norm(Mr, axis=0)
         if np.any(cn == 0.0) or not np.all(np.isfinite(Mr)):
-            raise IdentificationError(
-                "the least-squares problem is singular (a column is zero or not finite)"
-            )
+            raise IdentificationError("the least-squares problem is singular (a column is zero or not finite)")
         new = np.linalg.lstsq(Mr / cn, rr, rcond=None)[0] / cn
         if not np.all(np.isfinite(new)):
             raise IdentificationError("Sanathanan–Koerner iteration produced non-finite coefficients")
@@ -380,13 +319,9 @@ def _start_parameters(theta: NDArray[np.float64], w_scale: float) -> TwoMassPara
 
 _PHYSICAL_MAX_NFEV = 60
 
-#: An extra delay (``fit_delay``) is kept when the weighted output error falls below this factor.
-#: Measured (bench plants, seed 7): with a 1 kHz current loop the fitted δ is 1.22 samples
-#: (T_c = 1.27) and the error falls to 0.64× (0.47× at 500 Hz, 0.61–0.74× on three other plants;
-#: 0.84× at 2 kHz and 0.92× on a soft heavy 25 Hz plant, not taken, whose starts do well
-#: anyway); without a lag δ comes out at −0.3…+0.6 samples and the error falls by < 1 % (2 % on
-#: the impact-rich 300 Hz plant). Taken, the 1 kHz-lag plant's start splits B_m/B_l right
-#: (B_m 0.0087 for 0.0084 instead of 0.00013) and its identification takes 0.7 s instead of 5.
+#: An extra delay (``fit_delay``) is kept when the weighted output error falls below this factor:
+#: a current-loop lag removes far more than that, an ideal loop a few percent at most
+#: (measured: see bench/results/RESULTS.md).
 _DELAY_GAIN = 0.8
 
 
@@ -451,16 +386,15 @@ def _physical_fit(theta, Xa, Xb, Xi, H, F, U, Y, w, w_scale):  # type: ignore[no
         J = dr_dc @ dc_dz
         return J - Q @ (Q.T @ J)
 
-    # the log-parameters bounded to e^±20 of the start: unbounded, a whole band distorted by
-    # 0.05 N·m of Coulomb friction drove them to overflow (inf coefficients, NaN into LAPACK)
+    # log-parameters bounded to e^±20 of the start: a band distorted by Coulomb friction
+    # otherwise drives them to overflow (inf coefficients, NaN into LAPACK)
     lo = np.array([-_LOG_SPAN, -_LOG_SPAN, -_LOG_SPAN, _DAMPING_FLOOR, _DAMPING_FLOOR,
                    _DAMPING_FLOOR * S0 / D0])
     z0 = np.array([0.0, 0.0, 0.0, p0.B_m / S0, p0.B_l / S0, p0.D / D0])
     z0[3:] = np.maximum(z0[3:], 2.0 * lo[3:])
     try:
-        # converges in ≤ 35 evaluations wherever it can (bench_identify plants, band edges
-        # 0.1–10 Hz); on a whole band distorted by Coulomb friction it ran to 200 without
-        # converging (0.65 s), and the start is then taken from a raised band edge anyway
+        # capped: it converges well within the cap wherever it can, and on a band distorted by
+        # Coulomb friction the start is taken from a raised band edge anyway
         r = least_squares(fun, z0, jac=jac, bounds=(lo, np.array([_LOG_SPAN] * 3 + [np.inf] * 3)),
                           method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=_PHYSICAL_MAX_NFEV)
     except (ValueError, np.linalg.LinAlgError):

@@ -20,18 +20,12 @@ from commission.exceptions import IdentificationError
 class TwoMassParameters:
     """Physical parameters of the linear two-mass model (SI units)."""
 
-    J_m: float
-    """Motor-side inertia [kg·m²]."""
-    J_l: float
-    """Load-side inertia [kg·m²]."""
-    B_m: float
-    """Motor-side viscous friction [N·m·s/rad]."""
-    B_l: float
-    """Load-side viscous friction [N·m·s/rad]."""
-    K: float
-    """Shaft stiffness [N·m/rad]."""
-    D: float
-    """Shaft damping [N·m·s/rad]."""
+    J_m: float  # motor-side inertia [kg·m²]
+    J_l: float  # load-side inertia [kg·m²]
+    B_m: float  # motor-side viscous friction [N·m·s/rad]
+    B_l: float  # load-side viscous friction [N·m·s/rad]
+    K: float  # shaft stiffness [N·m/rad]
+    D: float  # shaft damping [N·m·s/rad]
 
     def as_dict(self) -> dict[str, float]:
         return {k: float(v) for k, v in asdict(self).items()}
@@ -64,13 +58,9 @@ class TwoMassParameters:
 REFERENCE_PLANT = TwoMassParameters(
     J_m=4.78e-4, J_l=1.92e-4, B_m=0.84e-2, B_l=0.53e-2, K=23.10, D=1.54e-2
 )
-REFERENCE_EPSILON_DEG = 0.40
 
 
-# --------------------------------------------------------------------------
-# Coefficients -> parameters
-# --------------------------------------------------------------------------
-#
+# --- coefficients -> parameters ---------------------------------------------
 # With J_m = 1/b2 and the unknown J_l = x (so J_m·J_l = J_m·x):
 #
 #     S := B_m + B_l = a0/b0                          (DC gain; reliable)
@@ -144,12 +134,9 @@ def from_velocity_tf(num: NDArray[np.float64], den: NDArray[np.float64]) -> TwoM
     the comment above this function: J_m = 1/b2, B_m + B_l = a0/b0, and J_l is
     the physical root of one quadratic equation.
 
-    Conditioning: J_m, K, J_l and B_m + B_l follow well from the coefficients;
-    the split of the friction between B_m and B_l (and D) rests on
-    Y = J_m·(a2 − b1·J_m), a small difference of similar numbers when the load
-    side is much better damped than the motor side. From a fitted transfer
-    function, B_l errors of 50–100 % are typical while B_m + B_l (the DC
-    gain) stays within a percent or two.
+    Conditioning: J_m, K, J_l and B_m + B_l follow well from the coefficients; the
+    split B_m/B_l (and D) rests on Y = J_m·(a2 − b1·J_m), a small difference of similar
+    numbers, so from a fitted transfer function it is the weak part.
 
     :raises IdentificationError: when the coefficients belong to no physical
         two-mass plant (a negative inertia, stiffness, friction or damping,
@@ -219,11 +206,7 @@ def from_velocity_tf(num: NDArray[np.float64], den: NDArray[np.float64]) -> TwoM
     return physical[0]
 
 
-# --------------------------------------------------------------------------
-# Modes
-# --------------------------------------------------------------------------
-
-
+# --- modes ------------------------------------------------------------------
 @dataclass(frozen=True)
 class Modes:
     """Modal description of V_m/T_ref.
@@ -235,16 +218,11 @@ class Modes:
     with three real poles, the one of smallest magnitude).
     """
 
-    f_resonance_hz: float
-    """Undamped natural frequency of the resonance [Hz]."""
-    zeta_resonance: float
-    """Damping ratio of the resonance [-]."""
-    f_antiresonance_hz: float
-    """Undamped natural frequency of the anti-resonance [Hz]."""
-    zeta_antiresonance: float
-    """Damping ratio of the anti-resonance [-]."""
-    real_pole_rad_s: float
-    """Location of the real pole [rad/s] (e.g. −20.45 on the reference plant)."""
+    f_resonance_hz: float  # undamped natural frequency of the resonance [Hz]
+    zeta_resonance: float  # its damping ratio [-]
+    f_antiresonance_hz: float  # undamped natural frequency of the anti-resonance [Hz]
+    zeta_antiresonance: float  # its damping ratio [-]
+    real_pole_rad_s: float  # the real pole [rad/s] (−20.45 on the reference plant)
 
 
 def modes_from_tf(num: NDArray[np.float64], den: NDArray[np.float64]) -> Modes:

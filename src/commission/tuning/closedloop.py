@@ -24,7 +24,8 @@ Controller at tick k (every gain in SI units, see :class:`ControllerGains`)::
                                                             unless the output saturates)
     u[k]   = clip(N(F(u_pi + k_tff·J·r̈_f[k])), ±limit)     F: 1st-order low-pass,
                                                             N: notch biquads
-    applied over [(k+d)·Ts, (k+d+1)·Ts), d = computation delay [samples]
+    applied over [(k+d)·Ts, (k+d+1)·Ts), d = the plant's computation delay [samples]
+    (:attr:`commission.plant.PlantParameters.delay_samples`: the drive's, not the design's)
 with dir[k] the sign of the last non-zero increment of the unfiltered reference (0 before any).
 The compensation is written symmetric (±a/2): a drive that adds the whole amount
 a in one direction only (YASKAWA Pn230/231) differs by the constant a/2, which
@@ -45,9 +46,9 @@ __all__ = ["MAX_NOTCHES", "simulate_closed_loop"]
 MAX_NOTCHES = 2
 
 # controller vector
-(_KP, _KI, _KPOS, _KVFF, _KTFF, _ALPHA_F, _LIMIT, _BC_HALF, _ALPHA_B, _POSMODE, _NNOTCH, _DELAY,
- _ALPHA_R) = range(13)
-_NOTCH0 = 13  # then 5 coefficients per notch: b0, b1, b2, a1, a2
+(_KP, _KI, _KPOS, _KVFF, _KTFF, _ALPHA_F, _LIMIT, _BC_HALF, _ALPHA_B, _POSMODE, _NNOTCH,
+ _ALPHA_R) = range(12)
+_NOTCH0 = 12  # then 5 coefficients per notch: b0, b1, b2, a1, a2
 _N_CTRL = _NOTCH0 + 5 * MAX_NOTCHES
 
 
@@ -80,8 +81,6 @@ def _run(r: NDArray[np.float64], v_ref: NDArray[np.float64], a_ref: NDArray[np.f
     a_f = a_ref[0]
     alpha_r = c[_ALPHA_R]
     pos_mode = c[_POSMODE] > 0.0
-    n_delay = int(c[_DELAY])
-    line = np.zeros(n_delay + 1)  # computation delay: u[k] acts n_delay samples later
     for k in range(n):
         pos_m = quantise(motor_position(s), q_m)
         x_l = load_position(s)
@@ -132,9 +131,6 @@ def _run(r: NDArray[np.float64], v_ref: NDArray[np.float64], a_ref: NDArray[np.f
         out[5, k] = twist(s)
         out[6, k] = offset
         out[7, k] = r_f if pos_mode else 0.0
-        if n_delay > 0:
-            line[k % (n_delay + 1)] = u
-            u = line[(k + 1) % (n_delay + 1)]
         advance_sample(s, u, 0.0, p)
 
 

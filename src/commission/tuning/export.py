@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,12 +26,12 @@ from typing import Any
 
 import yaml
 
-from ..exceptions import DriveError, OutputError
+from ..exceptions import DriveError, LogFormatError, OutputError
 from .settings import ControllerSettings, TuningError
 
 __all__ = [
     "PARAMETER_TOPIC", "ApplyReport", "ParameterValue", "apply", "controller_json", "drive_parameters",
-    "restore_values", "write_controller_files",
+    "restore_values", "write_controller_files", "write_values",
 ]
 
 #: MCAP topic of the write-back log (old values, every write, store).
@@ -40,6 +41,18 @@ STORE_SIGNATURE = 0x65766173
 STORE_PARAMETER = "store_parameters"
 
 _INT_TYPES = {"int8", "uint8", "int16", "uint16", "int32", "uint32"}
+_INT_RANGES = {"int8": (-(2**7), 2**7 - 1), "uint8": (0, 2**8 - 1), "int16": (-(2**15), 2**15 - 1),
+               "uint16": (0, 2**16 - 1), "int32": (-(2**31), 2**31 - 1), "uint32": (0, 2**32 - 1)}
+_REAL_MAX = {"real32": 3.4028234663852886e38, "real64": 1.7976931348623157e308}
+
+
+def file_name_part(name: str) -> str:
+    """``name`` as a safe part of a file name: letters, digits, ``_``, ``-`` and single dots
+    (anything else becomes ``_``), no leading dot, at most 64 characters (a drive description's
+    name goes into ``controller-<name>.yaml``, and must not reach outside the output folder)."""
+    safe = re.sub(r"[^A-Za-z0-9._-]|\.{2,}", "_", str(name))
+    safe = re.sub(r"_{2,}", "_", safe).strip("._")[:64]
+    return safe or "drive"
 
 
 # --------------------------------------------------------------------------------------------
@@ -50,8 +63,11 @@ def controller_json(settings: ControllerSettings, verification: Any | None = Non
     s = settings
     ready = bool(s.meets_margins and (verification is None or verification.ready))
     reasons: list[str] = []
-    if not s.meets_margins:
+    pm, gm = s.required_phase_margin_deg, s.required_gain_margin_db
+    if not (s.margins.meets(pm, gm) and (s.margins_gap is None or s.margins_gap.meets(pm, gm))):
         reasons.append("the settings do not meet the required margins on the identified model")
+    if s.robust is not None:
+        reasons += s.robust.reasons()
     if verification is not None:
         reasons += list(verification.reasons)
     doc: dict[str, Any] = {
@@ -93,8 +109,17 @@ def controller_json(settings: ControllerSettings, verification: Any | None = Non
                     "required_gain_margin_db": s.required_gain_margin_db,
                     "gap": None if s.margins_gap is None else s.margins_gap.as_dict(),
                     "model": "identified, contact (gap: motor alone)"},
+        "robust": None if s.robust is None else s.robust.as_dict(),
+        "bandwidth_limit": None if s.limit is None else s.limit.as_dict(),
+        "measured_band": {"band_hz": None if s.measured_band_hz is None else list(s.measured_band_hz),
+                          "source": s.measured_band_source, "crossover_limit_hz": s.crossover_limit_hz,
+                          "crossover_hz": _f(s.margins.crossover_hz),
+                          "inside": (s.crossover_limit_hz is None or not math.isfinite(s.margins.crossover_hz)
+                                     or s.margins.crossover_hz <= s.crossover_limit_hz * (1.0 + 1e-6))},
         "drive_model": {"current_loop_bandwidth_hz": s.current_loop_bandwidth_hz,
-                        "computation_delay_samples": s.computation_delay_samples},
+                        "loop_delay_samples": s.loop_delay_samples,
+                        "position_loop_delay_samples": s.position_loop_delay_samples,
+                        **({} if s.dynamics is None else {"sources": s.dynamics.as_dict()})},
         "modes": {"f_resonance_hz": _f(s.resonance_hz), "f_antiresonance_hz": _f(s.antiresonance_hz)},
         "design": {"candidates": list(s.candidates), "notes": list(s.notes)},
         "verification": {"ready": ready, "reasons": reasons},
@@ -232,7 +257,7 @@ def write_controller_files(out_dir: str | Path, settings: ControllerSettings, ve
                         "reviewed (commission --apply refuses them)",
                 "parameters": [v.as_dict() for v in params],
             }
-            py = folder / f"controller-{description.name}.yaml"
+            py = folder / f"controller-{file_name_part(description.name)}.yaml"
             py.write_text(yaml.safe_dump(ydoc, sort_keys=False, allow_unicode=True), encoding="utf-8")
             paths.append(py)
     except OSError as err:
@@ -301,20 +326,8 @@ def apply(drive: Any, parameters: Sequence[ParameterValue], *, yes: bool = False
     drive_name = getattr(description, "name", type(drive).__name__)
     _log({"event": "old_values", "drive": drive_name,
           "values": [{"name": p.name, "value": old[p.name], "unit": p.unit, "object": p.object} for p in parameters]})
-    written: dict[str, float] = {}
-    back: dict[str, float] = {}
-    for p in parameters:
-        _log({"event": "write", "drive": drive_name, "name": p.name, "value": p.value, "unit": p.unit,
-              "raw": p.raw, "object": p.object, "old": old[p.name]})
-        drive.write_parameter(p.name, p.value)
-        written[p.name] = p.value
-        got = float(drive.read_parameter(p.name))
-        back[p.name] = got
-        spec = description.parameters[p.name] if description is not None else None
-        ok = _close(got, p.value, spec) if spec is not None else math.isclose(got, p.value, rel_tol=1e-6)
-        _log({"event": "read_back", "drive": drive_name, "name": p.name, "value": got, "ok": ok})
-        if not ok:
-            raise DriveError(f"{p.name}: wrote {p.value:g} {p.unit}, read back {got:g}")
+    back = write_values(drive, parameters, old=old, log=log, drive_name=drive_name)
+    written = {p.name: p.value for p in parameters}
     stored = False
     if store:
         _log({"event": "store", "drive": drive_name, "object": str(description.parameters[STORE_PARAMETER].object)})
@@ -324,23 +337,95 @@ def apply(drive: Any, parameters: Sequence[ParameterValue], *, yes: bool = False
     return ApplyReport(applied=True, old=old, written=written, read_back=back, stored=stored)
 
 
+def write_values(drive: Any, parameters: Sequence[ParameterValue], *, old: Mapping[str, float], log: Log | None,
+                 drive_name: str) -> dict[str, float]:
+    """Write each value, read it back and compare, logging every write and read-back on
+    :data:`PARAMETER_TOPIC`; returns the values read back.
+
+    :raises DriveError: a read-back differs (the writes before it stay).
+    """
+    description = getattr(drive, "description", None)
+    back: dict[str, float] = {}
+    for p in parameters:
+        if log is not None:
+            log(PARAMETER_TOPIC, {"event": "write", "drive": drive_name, "name": p.name, "value": p.value,
+                                  "unit": p.unit, "raw": p.raw, "object": p.object, "old": old.get(p.name)})
+        drive.write_parameter(p.name, p.value)
+        got = float(drive.read_parameter(p.name))
+        back[p.name] = got
+        spec = description.parameters.get(p.name) if description is not None else None
+        ok = _close(got, p.value, spec) if spec is not None else math.isclose(got, p.value, rel_tol=1e-6)
+        if log is not None:
+            log(PARAMETER_TOPIC, {"event": "read_back", "drive": drive_name, "name": p.name, "value": got, "ok": ok})
+        if not ok:
+            raise DriveError(f"{p.name}: wrote {p.value:g} {p.unit}, read back {got:g}")
+    return back
+
+
 def restore_values(results: Mapping[str, Sequence[Mapping[str, Any]]] | str | Path,
                    description: Any) -> list[ParameterValue]:
     """The old values logged by :func:`apply` (the first ``old_values`` event), as parameters to write.
 
-    ``results``: ``commission.mcaplog.read_results(path)`` or the path itself.
+    ``results``: ``commission.mcaplog.read_results(path)`` or the path itself. Every value is
+    checked as a tuning value would be, before anything is written: a parameter the description
+    has (not the store command), in its unit, a finite number, an integer for integer objects,
+    within the type's range and the description's ``min``/``max``.
+
+    :raises LogFormatError: the log's entry is malformed (not a list of name/value objects).
+    :raises TuningError: a value is outside what the description allows (nothing is written).
     """
     if isinstance(results, (str, Path)):
         from ..mcaplog import read_results
 
         results = read_results(results)
-    events = [e for e in results.get(PARAMETER_TOPIC, []) if e.get("event") == "old_values"]
+    events = [e for e in results.get(PARAMETER_TOPIC, []) if isinstance(e, Mapping) and e.get("event") == "old_values"]
     if not events:
         raise TuningError(f"the log has no old parameter values on {PARAMETER_TOPIC}: nothing to restore")
-    out = []
-    for item in events[0]["values"]:
-        spec = description.parameter(item["name"])
-        raw = float(item["value"]) / spec.scale
-        out.append(ParameterValue(name=item["name"], value=float(item["value"]), unit=spec.unit, raw=raw,
-                                  requested=float(item["value"]), clamped=False, object=str(spec.object)))
+    items = events[0].get("values")
+    if not isinstance(items, list) or not items:
+        raise LogFormatError(f"the log's old parameter values on {PARAMETER_TOPIC} are not a list of values")
+    out: list[ParameterValue] = []
+    problems: list[str] = []
+    for item in items:
+        name = item.get("name") if isinstance(item, Mapping) else None
+        value = item.get("value") if isinstance(item, Mapping) else None
+        if not isinstance(name, str) or type(value) not in (int, float):
+            raise LogFormatError(f"the log's old parameter values on {PARAMETER_TOPIC}: entry {str(item)[:80]!r} "
+                                 "is not a name with a number")
+        if name == STORE_PARAMETER or any(p.name == name for p in out):
+            raise LogFormatError(f"the log's old parameter values on {PARAMETER_TOPIC} list '{name}' "
+                                 + ("twice" if name != STORE_PARAMETER else "(a command, not a setting)"))
+        spec = description.parameter(name)
+        problem = _restore_problem(name, float(value), item.get("unit", spec.unit), spec)
+        if problem:
+            problems.append(problem)
+            continue
+        out.append(ParameterValue(name=name, value=float(value), unit=spec.unit, raw=float(value) / spec.scale,
+                                  requested=float(value), clamped=False, object=str(spec.object),
+                                  min_value=None if spec.min is None else spec.min * spec.scale,
+                                  max_value=None if spec.max is None else spec.max * spec.scale))
+    if problems:
+        raise TuningError("refusing to restore, nothing written: " + "; ".join(problems))
     return out
+
+
+def _restore_problem(name: str, value: float, unit: Any, spec: Any) -> str | None:
+    """Why ``value`` (in ``unit``) cannot be written to ``spec``; None when it can."""
+    if unit != spec.unit:
+        return f"{name} is logged in {unit!r}, the drive description says {spec.unit!r}"
+    if not math.isfinite(value):
+        return f"{name} = {value} is not a finite number"
+    raw = value / spec.scale
+    if spec.type in _INT_TYPES:
+        if abs(raw - round(raw)) > 1e-6 * max(1.0, abs(raw)):
+            return f"{name} = {value:g} {spec.unit} is not a whole number of its unit ({spec.scale:g})"
+        lo, hi = _INT_RANGES[spec.type]
+        if not lo <= round(raw) <= hi:
+            return f"{name} = {value:g} {spec.unit} is outside the range of {spec.type}"
+    elif abs(raw) > _REAL_MAX.get(spec.type, math.inf):
+        return f"{name} = {value:g} {spec.unit} is outside the range of {spec.type}"
+    if (spec.min is not None and raw < spec.min) or (spec.max is not None and raw > spec.max):
+        lo = "-∞" if spec.min is None else f"{spec.min * spec.scale:g}"
+        hi = "∞" if spec.max is None else f"{spec.max * spec.scale:g}"
+        return f"{name} = {value:g} {spec.unit} outside {lo}…{hi}"
+    return None

@@ -50,12 +50,17 @@ def _kernel(plant: PlantParameters, sample_rate_hz: float) -> PlantKernel:
     return Plant(plant, sample_rate_hz).kernel
 
 
-def plant_from_model(model: Any, epsilon_rad: float, current_loop_bandwidth_hz: float | None) -> PlantParameters:
-    """The identified model as a plant to simulate: an Identification brings the Coulomb
-    friction it kept (``friction`` section); a bare :class:`TwoMassParameters` has none."""
-    params = model if isinstance(model, TwoMassParameters) else model.parameters
+def plant_from_model(model: Any, epsilon_rad: float, current_loop_bandwidth_hz: float | None,
+                     delay_samples: int = 0, parameters: TwoMassParameters | None = None) -> PlantParameters:
+    """The identified model as a plant to simulate, with a drive's current loop and computation
+    delay [whole samples]: an Identification brings the Coulomb friction it kept (``friction``
+    section); a bare :class:`TwoMassParameters` has none. ``parameters``: other two-mass
+    parameters than the model's (a member of the uncertainty set)."""
+    params = parameters if parameters is not None else (model if isinstance(model, TwoMassParameters)
+                                                        else model.parameters)
     fr = getattr(model, "friction", None) or {}
-    extras: dict[str, Any] = {"current_loop_bandwidth_hz": current_loop_bandwidth_hz}
+    extras: dict[str, Any] = {"current_loop_bandwidth_hz": current_loop_bandwidth_hz,
+                              "delay_samples": int(delay_samples)}
     if fr:
         extras.update(coulomb_motor_nm=float(fr.get("motor_nm", 0.0)), coulomb_load_nm=float(fr.get("load_nm", 0.0)),
                       coulomb_velocity_scale_rad_s=float(fr.get("velocity_scale_rad_s", 1e-3)))
@@ -105,7 +110,7 @@ def controller_vector(settings: ControllerSettings, *, position_mode: bool, torq
     c = [settings.velocity_gain, settings.velocity_integral_gain, settings.position_gain_per_s,
          settings.velocity_feedforward, settings.torque_feedforward * settings.total_inertia_kg_m2, alpha_f,
          torque_limit_nm, 0.5 * settings.backlash.sign * settings.backlash.amount_rad, alpha_b, 1.0 if position_mode else 0.0,
-         float(len(settings.notches)), float(settings.computation_delay_samples)]
+         float(len(settings.notches))]
     tr = settings.reference_filter_time_constant_s
     c.append(1.0 if tr <= 0 else 1.0 - math.exp(-Ts / tr))
     for n in settings.notches:
@@ -160,7 +165,8 @@ def _limit_cycle(y: NDArray[np.float64], Ts: float, floor: float) -> tuple[float
 
 
 def run_scenario(plant: PlantParameters, settings: ControllerSettings, opt: TuningOptions, scenario: str) -> ScenarioResult:
-    """One closed-loop run of ``settings`` on ``plant`` (its torque noise is not simulated)."""
+    """One closed-loop run of ``settings`` on ``plant`` (its torque noise is not simulated; its
+    current loop and computation delay are the drive's, whatever the settings were designed for)."""
     Ts = 1.0 / settings.sample_rate_hz
     kernel = _kernel(plant, 1.0 / Ts)
     q_m = 2.0 * math.pi / 2.0**plant.encoder_bits_motor

@@ -37,6 +37,10 @@ class NmtState(IntEnum):
     PRE_OPERATIONAL = 0x7F
 
 
+#: how long a check that finds the heartbeat overdue waits for frames still queued in this host [s]
+GRACE_S = 0.1
+
+
 def send_nmt(network: Network, command: NmtCommand, node_id: int) -> None:
     """One NMT command to one node (0: all nodes)."""
     network.send_message(0x000, bytes([int(command), node_id]))
@@ -88,6 +92,12 @@ class HeartbeatConsumer:
             return
         silent = self.silent_for_s
         limit = self.timeout_s if missed is None else min(self.timeout_s, missed * self.period_s)
+        if not self.lost and silent > limit:
+            # a busy host may run this check before its receive thread has taken the frames that came
+            # while it was not scheduled: give that thread a moment before calling the link lost
+            self._event.clear()
+            self._event.wait(min(self.period_s, GRACE_S))
+            silent = self.silent_for_s
         if self.lost or silent > limit:
             self.lost = True
             raise DriveTimeout(

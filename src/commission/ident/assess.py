@@ -1,0 +1,91 @@
+"""Assessment of a fit: how much of the record it explains, whether what it leaves is noise, and
+whether its intervals are tight enough to act on (:class:`commission.ident.result.FitQuality`).
+
+A result is *approximate* when
+
+* the model leaves more than ``APPROXIMATE_FACTOR`` × max(good-fit level, quantization floor) of
+  the torque unexplained and that residual is not white, stationary noise — the axis has dynamics
+  the model does not reproduce, and the parameters may be biased beyond their intervals; or
+* the drive samples fewer than ``SAMPLES_PER_RESONANCE`` times per resonance period; or
+* its 95 % interval is wider than what commissioning needs: ε to ``EPSILON_TOLERANCE_DEG`` or
+  ``RELATIVE_TOLERANCE`` of itself, J_m, J_l and K to ``RELATIVE_TOLERANCE`` — the record does not
+  determine them (a short or noisy record, a backlash the excitation barely opens).
+
+An approximate result is still a result: result.json and the report are written and say why.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.signal import welch
+
+from .estimator import EDGE_SAMPLES, PemFit
+from .result import FitQuality
+
+__all__ = ["assess", "whiteness"]
+
+APPROXIMATE_FACTOR = 5.0
+#: Spectral flatness and window-RMS stationarity of a residual that is white torque noise.
+WHITE_FLATNESS = 0.95
+WHITE_STATIONARY = 1.3
+#: Below this many samples per resonance period the motor's motion between samples, which the load
+#: simulation interpolates, limits K and J_l to several percent (bench/bench_family.py: no member
+#: under 22 was within the tolerances).
+SAMPLES_PER_RESONANCE = 25.0
+#: What commissioning needs of the result (the tolerances of bench/bench_family.py).
+EPSILON_TOLERANCE_DEG = 0.01
+RELATIVE_TOLERANCE = 0.02
+
+
+def whiteness(v: NDArray[np.float64], rate_hz: float) -> tuple[float, float]:
+    """(spectral flatness, window RMS p90/median) of a residual sampled at ``rate_hz``.
+
+    Flatness: geometric / arithmetic mean of its Welch PSD (256-sample segments) from 5 Hz to
+    0.8 × Nyquist — near 1 for white noise. Stationarity: the 90th percentile / median of its RMS
+    over 50 equal windows — near 1 when stationary, large when bursts (impacts) carry it.
+    """
+    f, P = welch(v, fs=rate_hz, nperseg=min(256, v.size))
+    band = (f > 5.0) & (f < 0.4 * rate_hz) & (P > 0)
+    flat = float(np.exp(np.mean(np.log(P[band]))) / np.mean(P[band])) if band.any() else 0.0
+    w = np.array([np.sqrt(np.mean(x * x)) for x in np.array_split(v, 50) if x.size])
+    med = float(np.median(w))
+    return flat, (float(np.percentile(w, 90)) / med if med > 0 else math.inf)
+
+
+def assess(fit: PemFit, *, torque_rms_nm: float, motor_samples: int, decimated_rate_hz: float,
+           good_fit_ratio: float, noise_floor_ratio: float, cutoff_hz: float,
+           observer_bandwidth_hz: float, sample_rate_hz: float, resonance_hz: float) -> FitQuality:
+    """The fit's quality (see the module docstring).
+
+    :param motor_samples: length of the residual's motor block (before edge trimming).
+    """
+    motor = fit.residual[:motor_samples - 2 * EDGE_SAMPLES]
+    ratio = float(np.sqrt(np.mean(motor * motor))) / max(torque_rms_nm, 1e-300)
+    flat, stationary = whiteness(motor, decimated_rate_hz)
+    level = APPROXIMATE_FACTOR * max(good_fit_ratio, noise_floor_ratio)
+    noise_limited = ratio > level and flat >= WHITE_FLATNESS and stationary <= WHITE_STATIONARY
+    reasons: list[str] = []
+    if ratio > level and not noise_limited:
+        reasons.append(f"the model leaves {100 * ratio:.2f} % of the torque unexplained "
+                       f"({ratio / max(good_fit_ratio, noise_floor_ratio):.0f}× what a model that describes the "
+                       "axis leaves), and not as white noise: the axis has dynamics the model does not reproduce; "
+                       "the parameters may be off by more than their intervals")
+    if sample_rate_hz < SAMPLES_PER_RESONANCE * resonance_hz:
+        reasons.append(f"the drive samples only {sample_rate_hz / resonance_hz:.0f}× per resonance period "
+                       f"({resonance_hz:.0f} Hz at {sample_rate_hz:g} Hz): the motor's motion between samples is "
+                       "interpolated, and K and J_l may be off by several percent")
+    eps_deg = math.degrees(fit.epsilon_rad)
+    half = 1.96 * fit.stderr("eps_deg")
+    if not half <= max(EPSILON_TOLERANCE_DEG, RELATIVE_TOLERANCE * eps_deg):
+        reasons.append(f"the record determines ε only to ±{half:.3g}° (95 %)")
+    wide = [n for n in ("J_m", "J_l", "K") if not 1.96 * fit.stderr("ln " + n) <= RELATIVE_TOLERANCE]
+    if wide:
+        reasons.append("the record determines " + ", ".join(
+            f"{n} only to ±{100 * 1.96 * fit.stderr('ln ' + n):.2g} %" for n in wide) + " (95 %)")
+    return FitQuality(residual_ratio=ratio, noise_floor_ratio=noise_floor_ratio, spectral_flatness=flat,
+                      window_rms_p90_over_median=stationary, noise_limited=noise_limited,
+                      approximate=bool(reasons), reasons=tuple(reasons), cutoff_hz=cutoff_hz,
+                      observer_bandwidth_hz=observer_bandwidth_hz, effective_samples=fit.n_effective)

@@ -1,0 +1,331 @@
+"""The frequency-domain start (paper steps 2–3) and the residual's low-pass for a record.
+
+The FRD of the whole record, at the resolution its length allows, over the band its torque
+actually excites, is fitted with a 2/3 rational model (transient term, delay, converged
+Sanathanan–Koerner; :mod:`commission.ident.tffit`), and the fit mapped to physical parameters.
+Friction and impacts distort the low frequencies: bins whose local-polynomial quality is low are
+left out, and fits from raised low band edges are candidates too; the time domain (the projected
+torque residual at ε = 0) picks among them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import brentq
+from scipy.signal import butter, sosfreqz
+
+from ..exceptions import IdentificationError
+from ..recording import Recording
+from .frd import FRD, estimate_frd
+from .residual import ResidualProblem, motor_position_samples
+from .scan import cell_rates, projected_cell
+from .tffit import TransferFunctionFit, fit_transfer_function
+from .twomass import TwoMassParameters, from_velocity_tf, modes
+
+__all__ = ["Start", "excited_band_hz", "frequency_start", "linear_start", "quantization_floor_nm",
+           "residual_cutoff"]
+
+#: Raised low band edges of the frequency-domain start [Hz], tried when the whole band's fit is
+#: distorted (masked bins, or no physical plant).
+_RAISED_EDGES_HZ = (1.0, 5.0, 10.0)
+#: A further edge, tried when the FRD's resonance peak lies at ≥ 3× it (both modes stay in band).
+_HIGH_EDGE_HZ = 20.0
+#: The chirp's band ends where its smoothed spectrum falls below this fraction of its median.
+_BAND_EDGE_LEVEL = 0.1
+
+
+@dataclass(frozen=True)
+class Start:
+    """The frequency-domain start."""
+
+    frd: FRD
+    fit: TransferFunctionFit | None
+    """The fit of the whole band (None when it failed)."""
+    parameters: TwoMassParameters
+    how: str
+    """"exact" (the fit maps to a physical plant) or "modes" (split from the modes)."""
+    delay_s: float
+    """Delay of the chosen fit [s] (one sample, plus a current loop's lag when fitted)."""
+    band_low_hz: float
+    """Low band edge the chosen fit used [Hz]."""
+
+
+def excited_band_hz(torque_ref: NDArray[np.float64], sample_rate_hz: float) -> float:
+    """Upper edge of the band the torque excites [Hz]: where its spectrum, averaged over
+    log-spaced bands, falls for good below ``_BAND_EDGE_LEVEL`` × its median above 1 Hz
+    (a chirp's amplitude spectrum is flat over its sweep)."""
+    u = np.asarray(torque_ref, dtype=float)
+    fs = float(sample_rate_hz)
+    p = np.abs(np.fft.rfft(u - u.mean())) ** 2
+    f = np.fft.rfftfreq(u.size, 1.0 / fs)
+    edges = np.geomspace(1.0, 0.5 * fs, 121)
+    idx = np.searchsorted(f, edges)
+    power = np.array([p[a:b].mean() if b > a else 0.0 for a, b in zip(idx[:-1], idx[1:])])
+    level = float(np.median(power[power > 0])) if np.any(power > 0) else 0.0
+    above = np.flatnonzero(power >= _BAND_EDGE_LEVEL * level)
+    return float(edges[above[-1] + 1]) if above.size else 0.5 * fs
+
+
+def linear_start(num: NDArray[np.float64], den: NDArray[np.float64],
+                 phi: float = 0.5) -> tuple[TwoMassParameters, str]:
+    """Physical parameters from a fitted V_m/T_ref = num/den, robust to a bad damping split.
+
+    Exact inversion (:func:`commission.ident.twomass.from_velocity_tf`) when it gives a physical
+    plant; otherwise (typical on backlash data: B_m or B_l comes out negative) the well-conditioned
+    quantities are kept — J_m = 1/b2, B_m + B_l = a0/b0, ω_a² = b0/b2 = K/J_l, the resonance
+    ω_r² ≈ K·(1/J_m + 1/J_l), D + B_l = b1·J_m·J_l — and the friction is split with ``phi``.
+    Returns the parameters and how they were obtained ("exact" or "modes").
+    """
+    num = np.asarray(num, dtype=float) / float(den[0])
+    den = np.asarray(den, dtype=float) / float(den[0])
+    try:
+        return from_velocity_tf(num, den), "exact"
+    except IdentificationError:
+        pass
+    b2, b1, b0 = num
+    a0 = den[3]
+    if not (b2 > 0 and b0 > 0 and a0 > 0):
+        raise IdentificationError("the fitted transfer function is not that of a two-mass plant "
+                                  f"(b2={b2:.3g}, b0={b0:.3g}, a0={a0:.3g} must be positive)")
+    J_m, S, wa2 = 1.0 / b2, a0 / b0, b0 / b2
+    poles = np.roots(den)
+    cplx = poles[np.abs(poles.imag) > 1e-9 * np.abs(poles)]
+    if cplx.size == 0:
+        raise IdentificationError("the fitted transfer function has no resonance (no complex poles)")
+    wr2 = float(np.max(np.abs(cplx)) ** 2)
+    if wr2 <= wa2:
+        raise IdentificationError("the fitted anti-resonance lies above the resonance: not a two-mass plant")
+    J_l = J_m * (wr2 / wa2 - 1.0)
+    K = wa2 * J_l
+    B_l = phi * S
+    X = max(b1 * J_m * J_l, 0.0)
+    D = max(X - B_l, 0.05 * X, 1e-6 * K / math.sqrt(wr2))
+    return TwoMassParameters(J_m=J_m, J_l=J_l, B_m=(1.0 - phi) * S, B_l=B_l, K=K, D=D), "modes"
+
+
+def _bins(frd: FRD, keep: NDArray[np.bool_]) -> FRD:
+    """``frd`` restricted to the bins ``keep`` (the DFTs and the quality are per bin)."""
+    return dataclasses.replace(frd, frequency_hz=frd.frequency_hz[keep], response=frd.response[keep],
+                               quality=frd.quality[keep], input_dft=frd.input_dft[keep],
+                               output_dft=frd.output_dft[keep])
+
+
+def _masked_fit(frd: FRD, quality_threshold: float, fit_delay: bool) -> tuple[TransferFunctionFit, int]:
+    """The 2/3 fit without the bins of low quality (when some, but at most half, are); a current
+    loop's lag fitted as extra delay. Returns (fit, bins left out)."""
+    good = frd.quality >= quality_threshold
+    masked = not good.all() and good.sum() >= 0.5 * good.size
+    return fit_transfer_function(_bins(frd, good) if masked else frd, fit_delay=fit_delay), \
+        int((~good).sum()) if masked else 0
+
+
+def frequency_start(rec: Recording, problem: ResidualProblem, *, band_hz: tuple[float, float],
+                    resolution_hz: float, quality_threshold: float, fit_delay: bool,
+                    notes: list[str]) -> Start:
+    """The FRD, its fit, and the physical start (see the module docstring)."""
+    fs = rec.sample_rate_hz
+    frd = estimate_frd(rec.torque_ref, rec.motor_velocity, fs, band_hz=band_hz, resolution_hz=resolution_hz)
+    fits: list[tuple[float, TransferFunctionFit]] = []
+    whole: TransferFunctionFit | None = None
+    masked = 0
+    try:
+        whole, masked = _masked_fit(frd, quality_threshold, fit_delay)
+        fits.append((band_hz[0], whole))
+    except IdentificationError as err:
+        notes.append(f"frequency-domain fit of the whole band failed ({err}); low band edges raised")
+    if masked:
+        notes.append(f"frequency-domain start: {masked} of {frd.frequency_hz.size} FRD bins left out "
+                     f"(quality < {quality_threshold:g})")
+    # a start whose resonance lies beyond fs/4 is no start (the load simulation's one step per
+    # sample does not resolve it), nor one whose anti-resonance lies below the band it came from
+    f_max = 0.25 * fs
+
+    def usable(p: TwoMassParameters, f_lo: float) -> bool:
+        try:
+            m = modes(p)
+        except IdentificationError:  # no resonance at all
+            return False
+        return min(p.K, p.J_l, p.J_m) > 0 and m.f_resonance_hz < f_max and m.f_antiresonance_hz > f_lo
+
+    if whole is not None and not masked:
+        try:
+            p, how = linear_start(whole.num, whole.den)
+            if how == "exact" and usable(p, band_hz[0]):
+                return Start(frd, whole, p, how, float(whole.delay_s), band_hz[0])
+        except IdentificationError:
+            pass
+    above = frd.frequency_hz >= 5.0
+    f_peak = (float(frd.frequency_hz[above][np.argmax(np.abs(frd.response[above]) * frd.frequency_hz[above])])
+              if above.any() else 0.0)
+    edges = _RAISED_EDGES_HZ + ((_HIGH_EDGE_HZ,) if f_peak >= 3.0 * _HIGH_EDGE_HZ else ())
+    for f_lo in (f for f in edges if band_hz[0] < f < 0.1 * band_hz[1]):
+        try:
+            fits.append((f_lo, _masked_fit(_bins(frd, frd.frequency_hz >= f_lo - 1e-9 * frd.resolution_hz),
+                                           quality_threshold, fit_delay)[0]))
+        except IdentificationError:
+            continue
+    scored: list[tuple[float, float, TwoMassParameters, str, float]] = []
+    for f_lo, fit in fits:
+        try:
+            p, how = linear_start(fit.num, fit.den)
+        except IdentificationError:
+            continue
+        if usable(p, f_lo):
+            cost = projected_cell(problem, cell_rates(p, 0.5), 0.0, coulomb=True).cost_nm
+            scored.append((cost, f_lo, p, how, float(fit.delay_s)))
+    if not scored:
+        raise IdentificationError("the frequency response is not that of a two-mass plant with its resonance "
+                                  f"below fs/4 = {f_max:.0f} Hz, from any low band edge up to "
+                                  f"{max(edges, default=band_hz[0]):g} Hz")
+    cost, f_lo, p, how, delay = min(scored, key=lambda c: (c[0], c[1]))
+    if f_lo > band_hz[0]:
+        notes.append(f"frequency-domain start fitted from {f_lo:g} Hz up (chosen by the torque residual "
+                     "among low band edges; the low band is distorted)")
+    return Start(frd, whole, p, how, delay, f_lo)
+
+
+def quantization_floor_nm(step_rad: float, J_m: float, sample_rate_hz: float, cutoff_hz: float) -> float:
+    """RMS torque residual [N·m] that a motor position quantized in steps of ``step_rad`` leaves
+    through J_m·ẍ_m: uniform quantization noise (variance step²/12, white) through the second
+    difference (|H|² = 16·sin⁴(ω/2)) times fs², and the residual's zero-phase low-pass (the 4th-order
+    Butterworth of :func:`commission.ident.residual.prepare_residual`, applied twice: |H|⁴)."""
+    sos = butter(4, min(cutoff_hz, 0.49 * sample_rate_hz), fs=sample_rate_hz, output="sos")
+    w, h = sosfreqz(sos, worN=4096)
+    power = 16.0 * np.sin(0.5 * w) ** 4 * np.abs(h) ** 4
+    var = step_rad * step_rad / 12.0 * float(np.sum(0.5 * (power[1:] + power[:-1]) * np.diff(w))) / math.pi
+    return J_m * sample_rate_hz ** 2 * math.sqrt(max(var, 0.0))
+
+
+def position_step_rad(rec: Recording) -> float:
+    """The motor encoder's step [rad]: the smallest position change in the record (0: none)."""
+    steps = np.abs(np.diff(motor_position_samples(rec.motor_position, rec.motor_velocity, rec.sample_rate_hz)))
+    steps = steps[steps > 0]
+    return float(np.min(steps)) if steps.size else 0.0
+
+
+def residual_cutoff(rec: Recording, start: TwoMassParameters, band_high_hz: float, configured_hz: float,
+                    torque_rms_nm: float, target_ratio: float) -> dict[str, Any]:
+    """The residual's low-pass for this record [Hz], with the quantization floor it leaves.
+
+    At least the configured cut-off and twice the start's resonance, at most the excited band and
+    0.4·fs; then lowered (not below twice the resonance) until the encoder's quantization, through
+    the second difference, leaves at most ``target_ratio`` of RMS τ_ref: a coarse encoder's
+    acceleration noise rises as f².
+    """
+    fs = rec.sample_rate_hz
+    f_res = modes(start).f_resonance_hz
+    top = min(band_high_hz, 0.4 * fs)
+    fc = min(max(configured_hz, 2.0 * f_res), top)
+    step = position_step_rad(rec)
+    ref = max(torque_rms_nm, 1e-300)
+
+    def floor(f_hz: float) -> float:
+        return quantization_floor_nm(step, start.J_m, fs, f_hz) / ref
+
+    out: dict[str, Any] = {"cutoff_hz": fc, "position_step_rad": step, "quantization_floor_ratio": floor(fc)}
+    if out["quantization_floor_ratio"] > target_ratio:
+        lowest = min(fc, 2.0 * f_res)
+        new = max(lowest, brentq(lambda f: floor(f) - target_ratio, 1e-3 * fc, fc)) if floor(lowest) < target_ratio \
+            else lowest
+        out.update(cutoff_hz=new, quantization_floor_ratio=floor(new), unlowered_cutoff_hz=fc)
+    return out
+
+
+@dataclass(frozen=True)
+class EncoderStart:
+    """The start from a load encoder (:func:`load_encoder_start`)."""
+
+    parameters: TwoMassParameters
+    epsilon_rad: float
+    coulomb_motor_nm: float
+    coulomb_load_nm: float
+    cost_nm: float
+    """RMS of the motor equation's residual at the best ε [N·m]."""
+
+
+def _deadzone(z: NDArray[np.float64], eps: float) -> NDArray[np.float64]:
+    return np.where(z > eps, z - eps, np.where(z < -eps, z + eps, 0.0))
+
+
+def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float) -> EncoderStart | None:
+    """Every parameter and ε from both encoders by linear least squares, no simulation.
+
+    With the load's position measured, the shaft torque is K·y + D·ẏ of the measured twist
+    y = dz(x_m − x_l; ε), and both equations of motion,
+
+        J_m·ẍ_m + B_m·ẋ_m + F_cm·sgn ẋ_m + K·y + D·ẏ = τ_ref        J_l·ẍ_l + B_l·ẋ_l + F_cl·sgn ẋ_l = K·y + D·ẏ,
+
+    are linear in the parameters for a given ε (equation error, the same low-pass as the residual):
+    ε is scanned (log-spaced, then refined around the best), each ε one small least-squares
+    problem. Noise in the measured twist biases the damping (errors in variables), so this is the
+    estimator's start, not its answer. None when no ε gives positive inertias and stiffness.
+    """
+    if problem.load_position is None:
+        return None
+    fs = problem.sample_rate_hz
+    Ts = 1.0 / fs
+    c = problem.spline
+    x = np.concatenate((c[:, 3], [c[-1].sum()]))
+    xl = problem.load_position
+    z = x - xl
+    lp = problem.lowpass
+    al = lp(np.ascontiguousarray((xl[2:] - 2.0 * xl[1:-1] + xl[:-2]) * fs * fs))
+    vl_raw = (xl[2:] - xl[:-2]) * (0.5 * fs)
+    vl = lp(np.ascontiguousarray(vl_raw))
+    sl = lp(np.ascontiguousarray(np.tanh(vl_raw / problem.velocity_scale_rad_s)))
+    am, vm, tq = problem.acceleration_f, problem.velocity_f, problem.torque_f
+    sm = problem.coulomb_f if problem.coulomb_f is not None else np.zeros_like(am)
+    n = am.size
+    inner = slice(4, n - 4)
+    zero = np.zeros(n)
+    b = np.concatenate((tq[inner], zero[inner]))
+
+    def solve(eps: float) -> tuple[float, NDArray[np.float64]]:
+        y = _deadzone(z, eps)
+        Y = lp(np.ascontiguousarray((y[:-2] + 4.0 * y[1:-1] + y[2:]) / 6.0))
+        Yd = lp(np.ascontiguousarray((y[2:] - y[:-2]) * (0.5 * fs)))
+        A = np.vstack((np.stack((am, vm, zero, zero, Y, Yd, sm, zero), axis=1)[inner],
+                       np.stack((zero, zero, -al, -vl, Y, Yd, zero, -sl), axis=1)[inner]))
+        sc = np.sqrt(np.sum(A * A, axis=0))
+        sc[sc == 0.0] = 1.0
+        th = np.linalg.lstsq(A / sc, b, rcond=None)[0] / sc
+        r = (A @ th - b)[: n - 8]
+        ok = th[0] > 0 and th[2] > 0 and th[4] > 0
+        return (float(np.sqrt(np.mean(r * r))) if ok else math.inf), th
+
+    grid = np.concatenate(([0.0], np.geomspace(math.radians(0.005), max(epsilon_top_rad, math.radians(0.01)), 40)))
+    costs = [solve(e) for e in grid]
+    i = int(np.argmin([cst for cst, _ in costs]))
+    if not math.isfinite(costs[i][0]):
+        return None
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    fine = np.linspace(lo, hi, 11)
+    refined = [solve(e) for e in fine]
+    j = int(np.argmin([cst for cst, _ in refined]))
+    (cost, th), eps = (refined[j], fine[j]) if refined[j][0] <= costs[i][0] else (costs[i], grid[i])
+    J_m, B_m, J_l, B_l, K, D, F_m, F_l = (float(v) for v in th)
+    del Ts
+    S = max(abs(B_m) + abs(B_l), 1e-9)
+    p = TwoMassParameters(J_m=J_m, J_l=J_l, B_m=max(B_m, 1e-3 * S), B_l=max(B_l, 1e-3 * S), K=K,
+                          D=max(D, 1e-6 * K))
+    return EncoderStart(p, float(eps), max(F_m, 0.0), max(F_l, 0.0), cost)
+
+
+def measured_band_hz(frd: FRD, level: float = 0.5) -> tuple[float, float]:
+    """The band the record measured with good signal [Hz]: from the FRD's first bin up to the last
+    frequency where its quality, averaged over ±5 % of the frequency, is at least ``level``."""
+    f, q = frd.frequency_hz, frd.quality
+    if not np.all(np.isfinite(q)):
+        return float(f[0]), float(f[-1])
+    c = np.concatenate(([0.0], np.cumsum(q)))
+    lo = np.searchsorted(f, 0.95 * f)
+    hi = np.searchsorted(f, 1.05 * f, side="right")
+    smooth = (c[hi] - c[lo]) / np.maximum(hi - lo, 1)
+    good = np.flatnonzero(smooth >= level)
+    return float(f[0]), float(f[good[-1]]) if good.size else float(f[0])

@@ -1,0 +1,123 @@
+"""Ctrl-C (SIGINT) during a command: noted at once, acted on where that is safe.
+
+While :func:`handling_interrupts` is active (the ``commission`` command installs it first thing):
+
+* the first SIGINT raises :class:`KeyboardInterrupt` in the main thread, as Python does by
+  default, so that whatever is waiting (a link, the drive's player, the identifier) ends now;
+* inside a :func:`deferred` block (stopping the drive, writing the log) it is only noted, and
+  raised when the outermost such block ends: a stop or a log is never cut in half;
+* every later SIGINT is noted and never raised: the tool is already on its way out, and a second
+  Ctrl-C must not cut the stop of the drive short (it says so on stderr).
+
+:func:`requested` tells an error handler that the user interrupted, also when a library turned
+the :class:`KeyboardInterrupt` into an error of its own (canopen's "Block download
+unsuccessful"), so that the command still ends as interrupted (exit 130).
+
+Without the handler (library use) Python's default applies and :func:`deferred` changes nothing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import threading
+from collections.abc import Iterator
+from types import FrameType
+
+__all__ = ["Held", "caused_by_interrupt", "deferred", "handling_interrupts", "requested"]
+
+
+class _State:
+    def __init__(self) -> None:
+        self.installed = False
+        self.count = 0  # SIGINTs received while installed
+        self.depth = 0  # nesting of deferred() blocks
+        self.pending = False  # a SIGINT arrived inside a deferred() block
+
+
+_state = _State()
+
+
+def _on_sigint(signum: int, frame: FrameType | None) -> None:
+    _state.count += 1
+    if _state.count > 1:
+        # os.write, not print: the handler may run in the middle of a print to stderr
+        os.write(2, b"commission: interrupted again: still stopping the drive and closing the log\n")
+        return
+    if _state.depth > 0:
+        _state.pending = True
+        return
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def handling_interrupts() -> Iterator[None]:
+    """Install the SIGINT policy of the module docstring for the duration of the block (main
+    thread only; elsewhere, or when already installed, the block runs unchanged)."""
+    if _state.installed or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, _on_sigint)
+    _state.installed, _state.count, _state.depth, _state.pending = True, 0, 0, False
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        _state.installed = False
+
+
+@contextlib.contextmanager
+def deferred(*, raise_after: bool = True) -> Iterator[None]:
+    """A block that a Ctrl-C does not cut: the interrupt is raised when the block is done, or,
+    with ``raise_after=False`` (an error path that goes on by itself), only left to
+    :func:`requested`."""
+    _state.depth += 1
+    try:
+        yield
+    finally:
+        _state.depth -= 1
+        if _state.depth == 0 and _state.pending:
+            _state.pending = False
+            if raise_after:
+                raise KeyboardInterrupt
+
+
+class Held:
+    """A stretch of code that a Ctrl-C does not cut, begun with :meth:`hold` at a point of one's
+    choosing (e.g. the last statement of a ``try`` body, so that no statement lies between the
+    end of an experiment and the hold) and ended with :meth:`release`; a Ctrl-C meanwhile is only
+    left to :func:`requested`. Both are idempotent."""
+
+    def __init__(self) -> None:
+        self.active = False
+
+    def hold(self) -> None:
+        if not self.active:
+            _state.depth += 1
+            self.active = True
+
+    def release(self) -> None:
+        if self.active:
+            self.active = False
+            _state.depth -= 1
+            if _state.depth == 0:
+                _state.pending = False
+
+
+def requested() -> bool:
+    """True once the user pressed Ctrl-C under :func:`handling_interrupts`."""
+    return _state.installed and _state.count > 0
+
+
+def caused_by_interrupt(err: BaseException) -> bool:
+    """True when ``err`` is, or was raised while handling, a KeyboardInterrupt, or the user
+    pressed Ctrl-C (a library may have replaced the KeyboardInterrupt by its own error)."""
+    seen: set[int] = set()
+    e: BaseException | None = err
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return requested()

@@ -1,0 +1,200 @@
+"""The hybrid identifier on plants whose parameters the test chose (sim_drive's plant plays the machine).
+
+Each plant is simulated and identified once (module cache). Outcomes with stated tolerances:
+what a user reads in result.json, never a stage's path. Tolerances: those of the issue
+(ε within 0.01° or 2 %, J_m, J_l, K within 2 %, resonance and anti-resonance within 0.5 %) on
+plants the model describes; on plants it cannot follow, the result is flagged approximate with
+its reasons, and its intervals hold the truth.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from commission.config import ExcitationConfig
+from commission.excitation import chirp
+from commission.ident.hybrid import Identification, IdentificationOptions, identify
+from commission.ident.twomass import REFERENCE_PLANT, TwoMassParameters, modes
+from commission.recording import Recording
+from sim_drive.plant import Plant, PlantParameters
+
+FS = 8000.0
+J_M = 4.78e-4
+
+
+def _plant(ratio: float, f_r: float, zeta: float, B_l: float | None = None) -> TwoMassParameters:
+    """J_l = ratio·J_m, K for the resonance f_r [Hz], D for the damping ratio ζ."""
+    J_l = ratio * J_M
+    w = 2 * math.pi * f_r
+    return TwoMassParameters(J_m=J_M, J_l=J_l, B_m=0.84e-2, B_l=B_l if B_l is not None else 0.53e-2 * math.sqrt(ratio / 0.4),
+                             K=w * w * J_l / (1 + ratio), D=2 * zeta * w / (1 / J_M + 1 / J_l))
+
+
+LIGHTLY_DAMPED = TwoMassParameters(**{**REFERENCE_PLANT.as_dict(), "D": 0.0045})
+CASES: dict[str, tuple[TwoMassParameters, dict]] = {
+    "reference": (REFERENCE_PLANT, dict(epsilon_deg=0.40)),
+    "no_backlash": (REFERENCE_PLANT, dict(epsilon_deg=0.0)),
+    "lightly_damped": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25)),
+    "lightly_damped_seed9": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25, seed=9)),
+    "friction": (REFERENCE_PLANT, dict(epsilon_deg=0.40, coulomb_motor_nm=0.01, coulomb_load_nm=0.01)),
+    "current_loop": (REFERENCE_PLANT, dict(epsilon_deg=0.40, current_loop_bandwidth_hz=1000.0, torque_noise_nm=1e-3)),
+    # impact-rich: at the true parameters the load simulated open loop leaves 28 % of τ_ref
+    "impact_rich_100hz": (_plant(1.0, 100.0, 0.05, B_l=0.53e-2 * math.sqrt(2.5)), dict(epsilon_deg=0.20, seed=3)),
+    "heavy_60hz": (_plant(2.0, 60.0, 0.07, B_l=0.53e-2 * math.sqrt(5.0)), dict(epsilon_deg=0.30, seed=7)),
+    "soft_heavy": (_plant(4.0, 25.0, 0.17, B_l=1.5e-2), dict(epsilon_deg=0.60)),
+    "wide_backlash": (REFERENCE_PLANT, dict(epsilon_deg=1.5)),
+    # J_l/J_m 0.2, 200 Hz, ζ 0.11: 645 impacts in 10 s (bench_identify's "stiff light 200Hz")
+    "stiff_light_200hz": (_plant(0.2, 200.0, 0.11, B_l=0.3e-2), dict(epsilon_deg=0.25)),
+    "coarse_encoder": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25, seed=5, encoder_bits_motor=17)),
+    "noisy": (REFERENCE_PLANT, dict(epsilon_deg=0.40, torque_noise_nm=3e-3, seed=5)),
+    # ~2000 impacts in 10 s of a load the excitation throws around the gap: not followed
+    "chaotic_300hz": (_plant(2.0, 300.0, 0.15, B_l=0.53e-2 * math.sqrt(5.0)), dict(epsilon_deg=0.50, seed=7)),
+}
+_cache: dict[tuple, Identification] = {}
+
+
+def _recording(name: str, *, load: bool = False, position: bool = True, duration_s: float = 10.0) -> Recording:
+    params, extra = CASES[name]
+    kw = dict(torque_noise_nm=1e-4, seed=11)
+    kw.update(extra)
+    tau = chirp(ExcitationConfig(duration_s=duration_s)).samples
+    r = Plant(PlantParameters(**params.as_dict(), **kw), FS).run_torque(tau)
+    sig = {"motor_position": r.motor_position} if position else {}
+    if load:
+        sig["load_position"] = r.load_position
+    return Recording.uniform(FS, r.torque_ref, r.motor_velocity, **sig)
+
+
+def _identified(name: str, **rec: object) -> Identification:
+    key = (name, tuple(sorted(rec.items())))
+    if key not in _cache:
+        _cache[key] = identify(_recording(name, **rec))  # type: ignore[arg-type]
+    return _cache[key]
+
+
+def _within(res: Identification, name: str, scale: float = 1.0) -> None:
+    """The issue's tolerances (× ``scale``)."""
+    true, extra = CASES[name]
+    eps = extra["epsilon_deg"]
+    assert abs(res.epsilon_deg - eps) <= scale * max(0.01, 0.02 * eps), res.epsilon_deg
+    for p in ("J_m", "J_l", "K"):
+        assert getattr(res.parameters, p) == pytest.approx(getattr(true, p), rel=0.02 * scale), p
+    mt, mi = modes(true), res.modes
+    assert mi.f_resonance_hz == pytest.approx(mt.f_resonance_hz, rel=0.005 * scale)
+    assert mi.f_antiresonance_hz == pytest.approx(mt.f_antiresonance_hz, rel=0.005 * scale)
+
+
+def _covers(res: Identification, name: str) -> None:
+    """The 95 % intervals hold the truth."""
+    true, extra = CASES[name]
+    lo, hi = res.epsilon_interval_rad
+    assert lo <= math.radians(extra["epsilon_deg"]) <= hi
+    for p, (a, b) in (res.parameter_interval or {}).items():
+        if p in ("J_m", "J_l", "K"):
+            assert a <= getattr(true, p) <= b, p
+
+
+@pytest.mark.parametrize("name", ["reference", "lightly_damped", "lightly_damped_seed9", "impact_rich_100hz",
+                                  "heavy_60hz", "soft_heavy", "noisy", "coarse_encoder"])
+def test_plants_the_model_describes_are_identified_within_the_tolerances(name: str) -> None:
+    res = _identified(name)
+    _within(res, name)
+    _covers(res, name)
+    assert res.fit is not None and not res.fit.approximate, res.fit.reasons
+
+
+def test_the_reference_plant_keeps_no_extra_term_and_reports_a_tight_fit() -> None:
+    res = _identified("reference")
+    d = json.loads(json.dumps(res.to_dict()))
+    assert "friction" not in d and "current_loop" not in d
+    assert not any(t["kept"] for t in d["model_selection"].values())
+    assert d["fit"]["residual_ratio"] < 1e-3 and d["fit"]["approximate"] is False and d["fit"]["reasons"] == []
+    lo, hi = d["backlash"]["epsilon_interval_deg"]
+    assert hi - lo < 0.02
+    assert d["measured_band_hz"][1] > 300.0
+
+
+def test_no_backlash_is_reported_as_such() -> None:
+    res = _identified("no_backlash")
+    assert not res.backlash_detected and res.epsilon_deg <= 0.01
+    _within(res, "no_backlash")
+
+
+def test_coulomb_friction_is_kept_with_values_that_hold_the_truth() -> None:
+    res = _identified("friction")
+    _within(res, "friction")
+    f = res.to_dict()["friction"]
+    for side in ("motor", "load"):
+        assert f[f"{side}_nm"] == pytest.approx(0.01, rel=0.1)
+        lo, hi = f[f"{side}_interval_nm"]
+        assert lo <= f[f"{side}_nm"] <= hi
+
+
+def test_a_current_loop_is_kept_with_its_bandwidth() -> None:
+    res = _identified("current_loop")
+    _within(res, "current_loop")
+    c = res.to_dict()["current_loop"]
+    assert c["bandwidth_hz"] == pytest.approx(1000.0, rel=0.05)
+    lo, hi = c["bandwidth_interval_hz"]
+    assert lo <= c["bandwidth_hz"] <= hi
+    assert "friction" not in res.to_dict()
+
+
+def test_a_coarse_motor_encoder_lowers_the_residual_low_pass() -> None:
+    res = _identified("coarse_encoder")
+    assert res.fit is not None and res.fit.cutoff_hz < 200.0  # 17 bits: the low-pass came down from 400 Hz
+    assert any("encoder's step" in n for n in res.notes)
+    assert _identified("reference").fit.cutoff_hz == 400.0  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize("name", ["wide_backlash", "stiff_light_200hz", "chaotic_300hz"])
+def test_a_result_outside_the_tolerances_is_flagged_never_silent(name: str) -> None:
+    # plants at the edge of what one chirp record shows (a 1.5° gap on a light load, hundreds of
+    # impacts of a stiff light load, thousands at 300 Hz): within the tolerances, or flagged
+    # approximate with its reasons — and every number of result.json finite either way
+    res = _identified(name)
+    d = json.loads(json.dumps(res.to_dict()))
+    assert all(math.isfinite(v) for v in d["two_mass"].values())
+    try:
+        _within(res, name)
+    except AssertionError:
+        assert d["fit"]["approximate"] is True and d["fit"]["reasons"], "outside the tolerances, not flagged"
+
+
+def test_velocity_only_and_load_encoder_records() -> None:
+    v_only = _identified("lightly_damped", position=False)
+    _within(v_only, "lightly_damped")
+    assert any("rebuilt from the velocity" in n for n in v_only.notes)
+    both = _identified("lightly_damped", load=True)
+    _within(both, "lightly_damped")
+    assert both.stage("start").detail["load_encoder"] is True
+
+
+def test_a_five_second_record_is_identified_at_the_resolution_it_supports() -> None:
+    res = _identified("reference", duration_s=5.0)
+    assert any("resolution" in n for n in res.notes)
+    _within(res, "reference")
+
+
+def test_a_plant_the_model_cannot_follow_is_flagged_with_its_reasons_not_refused() -> None:
+    res = _identified("chaotic_300hz")
+    d = json.loads(json.dumps(res.to_dict()))
+    assert d["fit"]["approximate"] is True and d["fit"]["reasons"]
+    assert any(n.startswith("approximate result") for n in d["notes"])
+    assert all(math.isfinite(v) for v in d["two_mass"].values())
+
+
+def test_the_answer_does_not_depend_on_the_thread_count_or_on_perturbations_far_below_the_noise() -> None:
+    rec = _recording("lightly_damped")
+    one = identify(rec, IdentificationOptions(threads=1))
+    base = _identified("lightly_damped")
+    assert one.epsilon_rad == base.epsilon_rad and one.parameters == base.parameters
+    scale = 1.0 + 1e-9 * np.random.default_rng(0).standard_normal(len(rec))
+    moved = identify(rec.replace(torque_ref=rec.torque_ref * scale))
+    assert abs(moved.epsilon_deg - base.epsilon_deg) <= 0.001
+    for p in ("J_m", "J_l", "K"):
+        assert getattr(moved.parameters, p) == pytest.approx(getattr(base.parameters, p), rel=1e-4), p
