@@ -54,7 +54,7 @@ The summary goes to stdout, progress and warnings to stderr; the last line says 
 
 exit codes: 0 ok, 1 other error, 2 config, 3 input file, 4 drive, 5 safety limit, 6 identification,
             7 output file, 8 done but the identification is approximate (result.json's fit.reasons say why),
-            130 interrupted (Ctrl-C: the drive is stopped and disabled, the log kept)
+            130 interrupted (Ctrl-C, SIGTERM or SIGHUP: the drive is stopped and disabled, the log kept)
 """
 
 
