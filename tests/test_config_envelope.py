@@ -30,6 +30,9 @@ def test_shipped_configs_load():
         ("bogus: 1\n", "bogus: unknown key"),
         ("- a\n- b\n", "must be a mapping"),
         ("excitation: [\n", "not valid YAML at line"),
+        ("safety:\n  max_torque_nm: yes\n", "safety.max_torque_nm: must be a number, got true"),
+        ("identification:\n  threads: on\n", "identification.threads: must be a number, got true"),
+        ("sim:\n  epsilon_deg: no\n", "sim.epsilon_deg: must be a number, got false"),
     ],
 )
 def test_bad_config_is_one_line_naming_the_key(tmp_path, text, fragment):

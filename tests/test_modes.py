@@ -44,6 +44,8 @@ ROW_TESTS = {
                                      "test_serial_e2e::test_modbus_rtu_in_a_second_process"],
     "replay an MCAP log": ["test_modes::test_replay_mcap"],
     "replay a CSV file": ["test_modes::test_replay_csv"],
+    "fleet: many logs on Dask": ["test_fleet::test_the_table_reads_with_pyarrow_one_row_per_log",
+                                 "test_fleet::test_on_an_existing_scheduler_a_rerun_identifies_only_new_logs"],
     "machine-readable output": ["test_modes::test_json"],
 }
 

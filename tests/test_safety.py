@@ -255,8 +255,11 @@ CTRL_C_POINTS = {
 }
 
 
-@pytest.mark.parametrize("point", list(CTRL_C_POINTS))
-def test_ctrl_c_at_any_step_stops_the_drive_and_keeps_a_readable_log(point, tmp_path):
+@pytest.mark.parametrize("point,sig", [(p, signal.SIGINT) for p in CTRL_C_POINTS] +
+                         [("excitation", signal.SIGTERM), ("excitation", signal.SIGHUP)],
+                         ids=list(CTRL_C_POINTS) + ["excitation-SIGTERM", "excitation-SIGHUP"])
+def test_ctrl_c_at_any_step_stops_the_drive_and_keeps_a_readable_log(point, sig, tmp_path):
+    """Ctrl-C at each step; `kill` (SIGTERM) and a closed terminal (SIGHUP) while the drive moves."""
     device = SimulatedDevice()
     marker = CTRL_C_POINTS[point]
     with SlcanAdapter(device, pace=1.0) as adapter:
@@ -272,7 +275,7 @@ def test_ctrl_c_at_any_step_stops_the_drive_and_keeps_a_readable_log(point, tmp_
                 if not sent and (line.strip() == marker or (marker.startswith("excitation: ") and
                                                             line.startswith("excitation: ") and
                                                             line.strip() not in ("excitation: 0 %", "excitation: 100 %"))):
-                    proc.send_signal(signal.SIGINT)
+                    proc.send_signal(sig)
                     sent = True
             code = proc.wait(timeout=120)
         finally:
@@ -288,7 +291,8 @@ def test_ctrl_c_at_any_step_stops_the_drive_and_keeps_a_readable_log(point, tmp_
     log = tmp_path / "out" / "run.mcap"
     if point in ("excitation", "log", "identification", "tuning", "report"):
         n, status = readable_log(log)
-        assert status == ("aborted: interrupted (Ctrl-C)" if point == "excitation" else "complete")
+        named = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP (the terminal closed)"}
+        assert status == (f"aborted: interrupted ({named[sig]})" if point == "excitation" else "complete")
         assert (n < 16000) == (point == "excitation")
     elif log.exists():  # the signal landed a step later than its marker
         readable_log(log)

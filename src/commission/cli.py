@@ -37,6 +37,8 @@ modes:
   commission --port /dev/ttyACM0 --interface slcan --drive NAME   CANopen through a serial-line CAN adapter
   commission --port /dev/ttyUSB0 --protocol modbus [--drive NAME]  Modbus RTU on the drive's service port
   commission --replay run.mcap --out D   identify again from a log (.mcap or .csv)
+  commission --replay FOLDER [MORE ...] --out D [--scheduler tcp://HOST:PORT]
+                                         fleet: identify every log on Dask into D/fleet.parquet + D/fleet.html
   commission --warm-cache                compile the numerical kernels once (a first run does it otherwise)
 
 outputs (in --out DIR, default ./commissioning/<date-time>/):
@@ -52,7 +54,7 @@ The summary goes to stdout, progress and warnings to stderr; the last line says 
 
 exit codes: 0 ok, 1 other error, 2 config, 3 input file, 4 drive, 5 safety limit, 6 identification,
             7 output file, 8 done but the identification is approximate (result.json's fit.reasons say why),
-            130 interrupted (Ctrl-C: the drive is stopped and disabled, the log kept)
+            130 interrupted (Ctrl-C, SIGTERM or SIGHUP: the drive is stopped and disabled, the log kept)
 """
 
 
@@ -76,7 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
     x = src.add_mutually_exclusive_group(required=True)
     x.add_argument("--sim", action="store_true", help="use the built-in simulated drive (plant from the config's 'sim' section)")
     x.add_argument("--port", metavar="PORT", help="drive connection: a CAN channel (can0) or a serial device (/dev/ttyUSB0)")
-    x.add_argument("--replay", metavar="FILE", type=Path, help="no drive: read a recorded run (.mcap or .csv) and identify it")
+    x.add_argument("--replay", metavar="LOG_OR_FOLDER", type=Path, nargs="+",
+                   help="no drive: read a recorded run (.mcap or .csv) and identify it; with more than one log "
+                   "or a folder: fleet mode (every log on Dask, one row each in DIR/fleet.parquet)")
     x.add_argument("--warm-cache", action="store_true",
                    help="compile the numerical kernels into numba's cache with a short simulated run, then exit "
                    "(`make run` and the Docker image do this at install; otherwise the first run does it)")
@@ -135,6 +139,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="after the run, also measure the backlash at velocity reversals (paper §4.2; needs a load encoder; "
         "settings in the config's 'backlash_check' section)",
     )
+    fleet = p.add_argument_group("fleet mode (--replay with several logs or a folder)")
+    fleet.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                       help="run the identifications on this existing Dask scheduler's workers (they must see the "
+                       "logs' paths); default: a local cluster, one worker per core")
+    fleet.add_argument("--workers", metavar="N", type=int, help="local cluster: worker processes (default: one per core)")
+    fleet.add_argument("--growth-threshold", metavar="DEG", type=float, default=0.05,
+                       help="fleet.html lists first the axes whose backlash grew by more than this (default 0.05°)")
     out = p.add_argument_group("output")
     out.add_argument("--json", action="store_true", help="print one JSON document on stdout and nothing else")
     out.add_argument("-v", "--verbose", action="store_true", help="more detail; show the cause of errors")
@@ -337,6 +348,12 @@ def _run(args: argparse.Namespace, term: _Terminal) -> dict[str, Any]:
     identify = _identifier(config, args, term)
 
     if args.replay is not None:
+        # a folder is a fleet, unless it is named like a log (then reading it says what is wrong)
+        one = args.replay[0]
+        if len(args.replay) > 1 or args.scheduler is not None or (
+                one.is_dir() and one.suffix.lower() not in (".mcap", ".csv")):
+            return _fleet(args, config, term, out_dir, result)
+        args.replay = args.replay[0]
         return _replay(args, config, term, identify, out_dir, result)
 
     from .drive import open_drive
@@ -456,6 +473,42 @@ def _with_drive(args: argparse.Namespace, term: _Terminal, config: Config, drive
     term.summary("commissioning run", _rows(result))
     _details(term, result)
     return result
+
+
+def _fleet(args: argparse.Namespace, config: Config, term: _Terminal, out_dir: Path,
+           result: dict[str, Any]) -> dict[str, Any]:
+    """--replay with several logs or a folder: every log identified on Dask (commission.fleet)."""
+    from . import fleet
+    from .exceptions import ConfigError
+
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers must be at least 1, got {args.workers}")
+    if not args.growth_threshold >= 0:
+        raise ConfigError(f"--growth-threshold must be 0° or more, got {args.growth_threshold}")
+    options = fleet.FleetOptions(scheduler=args.scheduler, workers=args.workers,
+                                 growth_threshold_deg=args.growth_threshold,
+                                 identification=_identifier_options(config, args))
+    summary = fleet.run(args.replay, out_dir, options,
+                        progress=lambda done, total, detail: term.progress("fleet", done, total, detail))
+    term.close()
+    result["fleet"] = summary.to_dict()
+    result["files"] += [str(summary.table), str(summary.report)]
+    c = summary.counts
+    where = ("nothing to identify" if summary.cluster is None else
+             f"{summary.cluster.workers} workers ({'local' if summary.cluster.local else summary.cluster.scheduler}), "
+             f"{summary.seconds:.1f} s, {summary.logs_per_minute:.1f} logs/min")
+    rows = [("logs", f"{summary.found} found, {summary.skipped} already in the table, {summary.identified} identified"),
+            ("outcome", f"{c['ok']} ok ({summary.approximate} approximate), {c['failed']} failed, {c['crashed']} crashed"),
+            ("ran on", where),
+            ("backlash grew", ", ".join(f"{a.name} +{a.growth_deg:.3f}°" for a in summary.grown) or "on no axis")]
+    rows += [("file", f) for f in result["files"]]
+    term.summary("fleet", rows)
+    return result
+
+
+def _identifier_options(config: Config, args: argparse.Namespace) -> Any:
+    options = config.identification
+    return options if args.method is None else _override(options, method=args.method)
 
 
 def _add_to_result_json(out_dir: Path, key: str, value: Any) -> None:
@@ -690,6 +743,8 @@ def _announce_compilation(term: _Terminal) -> Iterator[None]:
 
 def _next_step(args: argparse.Namespace, result: dict[str, Any]) -> str:
     """The last line: what to do with what this run left."""
+    if "fleet" in result:
+        return f"next: open {result['fleet']['report']}; the table is {result['fleet']['table']} (pyarrow, pandas)"
     if "warm_cache" in result:
         return (f"next: the kernels are compiled and cached ({result['warm_cache']['seconds']:.1f} s); "
                 "`commission --sim` or a drive's run starts without compiling")

@@ -25,7 +25,7 @@ import stat
 from enum import Enum
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -196,6 +196,24 @@ def _check_values(data: Any) -> None:
                 stack.append((item, sub, depth + 1))
 
 
+def _check_flags(model: type[BaseModel], data: Any, where: str = "") -> None:
+    """Refuse a yes/no where a number belongs, naming the key: pydantic would read YAML's ``yes``
+    (true) as 1.0, a torque limit twice the default that nobody wrote."""
+    if not isinstance(data, dict):
+        return
+    for key, value in data.items():
+        field = model.model_fields.get(key) if isinstance(key, str) else None
+        if field is None:
+            continue  # an unknown key: the validation names it
+        sub = f"{where}.{key}" if where else key
+        kinds = [a for a in (get_args(field.annotation) or (field.annotation,)) if a is not type(None)]
+        if isinstance(value, bool) and bool not in kinds and any(k in (int, float) for k in kinds):
+            raise ConfigError(f"{sub}: must be a number, got {str(value).lower()} (YAML reads yes/no/on/off as true/false)")
+        for kind in kinds:
+            if isinstance(kind, type) and issubclass(kind, BaseModel):
+                _check_flags(kind, value, sub)
+
+
 def _describe(err: ValidationError, source: str) -> str:
     """``source: key.path: message`` of the first error."""
     first = err.errors()[0]
@@ -211,6 +229,11 @@ def config_from_dict(data: dict[str, Any] | None, source: str = "config") -> Con
     """Validate a config mapping; errors name the key (``excitation.amplitude_nm: ...``)."""
     try:
         _check_values(data)
+        _check_flags(Config, data)
+        if isinstance(data, dict) and isinstance(data.get("sim"), dict) and data["sim"]:
+            from .plant import PlantParameters  # as _check_plant: only when there is a sim section
+
+            _check_flags(PlantParameters, data["sim"], "sim")
     except ConfigError as err:
         raise ConfigError(f"{source}: {err}") from None
     try:

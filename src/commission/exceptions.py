@@ -89,6 +89,6 @@ class OutputError(CommissionError):
 
 
 class Aborted(CommissionError):
-    """The user interrupted the run (Ctrl-C)."""
+    """The user interrupted the run (Ctrl-C, SIGTERM, SIGHUP)."""
 
     exit_code = 130

@@ -1,5 +1,7 @@
 """Ctrl-C (SIGINT) during a command: noted at once, acted on where that is safe.
 
+SIGTERM (``kill``, a service manager, ``docker stop``) and SIGHUP (the terminal closed) are
+handled the same way: each ends the run, and every end stops and disables the drive.
 While :func:`handling_interrupts` is active (the ``commission`` command installs it first thing):
 
 * the first SIGINT raises :class:`KeyboardInterrupt` in the main thread, as Python does by
@@ -25,7 +27,12 @@ import threading
 from collections.abc import Iterator
 from types import FrameType
 
-__all__ = ["Held", "caused_by_interrupt", "deferred", "handling_interrupts", "requested"]
+__all__ = ["Held", "caused_by_interrupt", "deferred", "handling_interrupts", "requested", "what"]
+
+#: The signals that end a run like Ctrl-C, and how the log and the messages name them.
+_SIGNALS = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
+if hasattr(signal, "SIGHUP"):  # not on Windows
+    _SIGNALS[signal.SIGHUP] = "SIGHUP (the terminal closed)"
 
 
 class _State:
@@ -34,6 +41,7 @@ class _State:
         self.count = 0  # SIGINTs received while installed
         self.depth = 0  # nesting of deferred() blocks
         self.pending = False  # a SIGINT arrived inside a deferred() block
+        self.first = "Ctrl-C"  # what the first signal was
 
 
 _state = _State()
@@ -41,6 +49,8 @@ _state = _State()
 
 def _on_sigint(signum: int, frame: FrameType | None) -> None:
     _state.count += 1
+    if _state.count == 1:
+        _state.first = _SIGNALS.get(signal.Signals(signum), "a signal")
     if _state.count > 1:
         # os.write, not print: the handler may run in the middle of a print to stderr
         os.write(2, b"commission: interrupted again: still stopping the drive and closing the log\n")
@@ -58,12 +68,14 @@ def handling_interrupts() -> Iterator[None]:
     if _state.installed or threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGINT, _on_sigint)
+    previous = {sig: signal.signal(sig, _on_sigint) for sig in _SIGNALS}
     _state.installed, _state.count, _state.depth, _state.pending = True, 0, 0, False
+    _state.first = "Ctrl-C"
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         _state.installed = False
 
 
@@ -108,6 +120,11 @@ class Held:
 def requested() -> bool:
     """True once the user pressed Ctrl-C under :func:`handling_interrupts`."""
     return _state.installed and _state.count > 0
+
+
+def what() -> str:
+    """How the log and the messages name the interruption: "Ctrl-C", "SIGTERM", …"""
+    return _state.first
 
 
 def caused_by_interrupt(err: BaseException) -> bool:

@@ -38,6 +38,7 @@ from .envelope import EnvelopeCheck, HeldLimits, check_envelope, check_held_limi
 from .excitation import Waveform, chirp, velocity_reversal
 from .exceptions import Aborted, CommissionError, DriveFault, LogFormatError, OutputError
 from .interrupt import Held, caused_by_interrupt, deferred, requested
+from .interrupt import what as interrupt_what
 from .mcaplog import append_result, write_recording
 from .ident.reversal import ReversalCheck, backlash_from_reversals
 from .plant import PlantParameters
@@ -494,7 +495,7 @@ class Sequencer:
             return None
         if partial is None:
             return None
-        reason = "interrupted (Ctrl-C)" if caused_by_interrupt(err) else _reason(err) or type(err).__name__
+        reason = f"interrupted ({interrupt_what()})" if caused_by_interrupt(err) else _reason(err) or type(err).__name__
         try:
             partial = partial.replace(metadata={**partial.metadata, **self._plant_metadata(),
                                                 "status": f"aborted: {reason}"})
