@@ -162,23 +162,6 @@ def _default_out_dir() -> Path:
     return out
 
 
-def read_log(path: Path) -> Recording:
-    """A Recording from a .mcap or .csv file (truncated MCAP: what was written, with a warning)."""
-    from .mcaplog import regular_file_size
-
-    regular_file_size(str(path), "a log (.mcap or .csv)")  # a FIFO or a device would block or never end
-    suffix = path.suffix.lower()
-    if suffix == ".mcap":
-        from .mcaplog import read_recording
-
-        return read_recording(path)
-    if suffix == ".csv":
-        from .csvlog import read_csv
-
-        return read_csv(path)
-    raise LogFormatError(f"{path}: unknown log format '{suffix or '(none)'}': expected .mcap or .csv")
-
-
 def _recording_summary(rec: Recording) -> dict[str, Any]:
     import numpy as np
 
@@ -297,6 +280,8 @@ def _identifier(config: Config, args: argparse.Namespace, term: _Terminal) -> An
 def _replay(args: argparse.Namespace, config: Config, term: _Terminal, identify: Any, out_dir: Path,
             result: dict[str, Any]) -> dict[str, Any]:
     """--replay FILE: identify, tune and report from a recorded run (no drive)."""
+    from .recording import read_log
+
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         recording = read_log(args.replay)

@@ -11,13 +11,14 @@ import dataclasses
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .exceptions import RecordingError
+from .exceptions import LogFormatError, RecordingError
 
 #: Every signal a Recording can carry, in a fixed order, with its SI unit.
 SIGNAL_UNITS: Mapping[str, str] = MappingProxyType(
@@ -231,3 +232,19 @@ class Recording:
             if (a is None) != (b is None) or (a is not None and not np.array_equal(a, b)):
                 return False
         return True
+
+
+def read_log(path: Path) -> Recording:
+    """A Recording from a .mcap or .csv file, by its name's ending (a truncated MCAP file gives
+    what was written, with a warning). A FIFO or a device is refused: it could block or never end."""
+    from .mcaplog import read_recording, regular_file_size
+
+    regular_file_size(str(path), "a log (.mcap or .csv)")
+    suffix = path.suffix.lower()
+    if suffix == ".mcap":
+        return read_recording(path)
+    if suffix == ".csv":
+        from .csvlog import read_csv
+
+        return read_csv(path)
+    raise LogFormatError(f"{path}: unknown log format '{suffix or '(none)'}': expected .mcap or .csv")

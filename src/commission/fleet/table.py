@@ -26,7 +26,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..exceptions import CommissionError, LogFormatError, OutputError
-from ..recording import Recording
+from ..recording import read_log
 
 __all__ = [
     "LOG_SUFFIXES",
@@ -37,7 +37,6 @@ __all__ = [
     "crashed_row",
     "find_logs",
     "identify_log",
-    "read_log_file",
 ]
 
 #: File name endings of the logs a folder is searched for (lower case).
@@ -147,20 +146,6 @@ def content_hash(path: Path) -> str:
 # ---------------------------------------------------------------------------------------------
 # one log → one row (runs on a worker)
 # ---------------------------------------------------------------------------------------------
-def read_log_file(path: Path) -> Recording:
-    """A Recording from an .mcap or .csv log (by its name's ending)."""
-    suffix = path.suffix.lower()
-    if suffix == ".mcap":
-        from ..mcaplog import read_recording
-
-        return read_recording(path)
-    if suffix == ".csv":
-        from ..csvlog import read_csv
-
-        return read_csv(path)
-    raise LogFormatError(f"{path}: unknown log format '{suffix or '(none)'}': expected .mcap or .csv")
-
-
 def _empty_row(source: str, digest: str, status: LogStatus) -> dict[str, Any]:
     row: dict[str, Any] = dict.fromkeys(SCHEMA.names)
     row.update(source=source, content_sha256=digest, status=status.value)
@@ -255,7 +240,7 @@ def identify_log(source: str, digest: str, options: Mapping[str, Any]) -> dict[s
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            recording = read_log_file(Path(source))
+            recording = read_log(Path(source))
             drive = recording.drive
             row.update(drive_backend=drive.backend, drive_vendor=drive.vendor, drive_product=drive.product,
                        drive_serial=drive.serial_number, drive_firmware=drive.firmware,
