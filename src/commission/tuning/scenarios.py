@@ -198,7 +198,7 @@ def run_scenario(plant: PlantParameters, settings: ControllerSettings, opt: Tuni
         amp, f = _limit_cycle(y[-max(8, n // 4):], Ts, 4.0 * q_m / Ts)
         return ScenarioResult(
             overshoot_pct=max(0.0, (float(np.max(y)) - A) / A * 100.0),
-            settling_time_s=_settling(t, _smooth(y, 8), A, opt.settle_band * A, t_pre),
+            settling_time_s=_settling(t, moving_average(y, 8), A, opt.settle_band * A, t_pre),
             steady_state_error=abs(float(np.mean(tail)) - A), load_error_rad=None,
             limit_cycle_amplitude=amp, limit_cycle_frequency_hz=f, peak_torque_nm=float(np.max(np.abs(out[4]))),
             signals={"t": t, "motor_velocity": y, "load_velocity": out[3], "torque": out[4]})
@@ -273,8 +273,8 @@ def run_scenario(plant: PlantParameters, settings: ControllerSettings, opt: Tuni
     raise ValueError(f"unknown scenario '{scenario}'")
 
 
-def _smooth(y: NDArray[np.float64], n: int) -> NDArray[np.float64]:
-    """Moving average over n samples (the quantised velocity is noisy)."""
+def moving_average(y: NDArray[np.float64], n: int) -> NDArray[np.float64]:
+    """Moving average over n samples (the quantised velocity is noisy); the first n-1 average what there is."""
     if n <= 1:
         return y
     c = np.cumsum(np.r_[0.0, y])

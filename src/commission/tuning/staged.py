@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from ..exceptions import CommissionError
 from ..recording import Recording
 from .export import PARAMETER_TOPIC, STORE_PARAMETER, STORE_SIGNATURE, ParameterValue, TuningError, write_values
+from .scenarios import moving_average
 from .settings import ControllerSettings, TuningOptions
 
 __all__ = ["CheckResult", "StagedApplyReport", "apply_staged", "check_reference", "conservative_settings",
@@ -81,16 +82,6 @@ class CheckResult:
                 "vibration": self.vibration, "reasons": list(self.reasons)}
 
 
-def _moving_average(x: NDArray[np.float64], n: int) -> NDArray[np.float64]:
-    if n <= 1:
-        return x
-    c = np.cumsum(np.r_[0.0, x])
-    out = np.empty_like(x)
-    out[n - 1:] = (c[n:] - c[:-n]) / n
-    out[:n - 1] = c[1:n] / np.arange(1, n)
-    return out
-
-
 def judge_check(recording: Recording, reference: NDArray[np.float64], options: TuningOptions,
                 torque_limit_nm: float, stage: str) -> CheckResult:
     """Overshoot, oscillation and vibration of the drive's response to ``reference``."""
@@ -99,7 +90,7 @@ def judge_check(recording: Recording, reference: NDArray[np.float64], options: T
     v = np.asarray(recording.motor_velocity[:n], dtype=float)
     u = np.asarray(recording.torque_ref[:n], dtype=float)
     r = np.asarray(reference[:n], dtype=float)
-    y = _moving_average(v, max(1, int(round(_SMOOTH_S * fs))))
+    y = moving_average(v, max(1, int(round(_SMOOTH_S * fs))))
     starts = np.flatnonzero(np.diff(r) != 0.0) + 1
     ends = np.r_[starts[1:], n]
     amp_ref = max(float(np.max(np.abs(r))), 1e-12)
@@ -122,7 +113,7 @@ def judge_check(recording: Recording, reference: NDArray[np.float64], options: T
             osc = amp
             osc_hz = (0.5 * (crossings.size - 1) * fs / float(crossings[-1] - crossings[0])
                       if crossings.size >= 4 else None)
-        ripple = u[h:b] - _moving_average(u[h:b], k_rip)
+        ripple = u[h:b] - moving_average(u[h:b], k_rip)
         vib = max(vib, float(np.sqrt(np.mean(ripple * ripple))) / torque_limit_nm)
     reasons = []
     if overshoot > options.apply_check_max_overshoot_pct:
