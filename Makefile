@@ -59,6 +59,10 @@ wheel-check: $(STAMP)
 	  done; \
 	  tail -n 1 "out-$$link.txt"; \
 	done; \
+	echo "wheel-check: commission --replay (fleet mode: both runs' logs on a local Dask cluster)"; \
+	venv/bin/commission --replay out-direct/run.mcap out-canopen/run.mcap --workers 1 --out fleet > fleet.txt; \
+	test -s fleet/fleet.parquet && test -s fleet/fleet.html || { echo "wheel-check: fleet mode left no table or page"; exit 1; }; \
+	tail -n 1 fleet.txt; \
 	echo "wheel-check: ok"
 
 clean:
