@@ -2,6 +2,7 @@
 
     python bench/record.py bench/bench_*.py        # what `make bench` runs
     python bench/record.py bench/bench_first_run.py
+    python bench/record.py bench/bench_streamed.py --slcan-runs 20   # options go to the script before them
 
 Each script's output is shown as it runs and then kept, under a heading with the date, the
 commit, the machine (CPUs, Python, numba), so that figures quoted anywhere can be traced to a
@@ -50,10 +51,10 @@ def heading() -> str:
             f"{platform.processor() or platform.machine()}, Python {platform.python_version()}, {_versions()}\n")
 
 
-def run(script: Path) -> tuple[int, str, float]:
+def run(script: Path, options: list[str]) -> tuple[int, str, float]:
     """Run one script with this interpreter, echoing its output; returns (exit code, output, seconds)."""
     start = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, str(script)], cwd=ROOT, stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, str(script), *options], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     lines = []
     assert proc.stdout is not None
@@ -64,17 +65,26 @@ def run(script: Path) -> tuple[int, str, float]:
 
 
 def main(argv: list[str]) -> int:
-    scripts = [Path(a) for a in argv] or sorted((ROOT / "bench").glob("bench_*.py"))
+    scripts: list[tuple[Path, list[str]]] = []
+    for a in argv:
+        if a.startswith("-") and scripts:
+            scripts[-1][1].append(a)
+        elif scripts and scripts[-1][1] and not a.endswith(".py"):
+            scripts[-1][1].append(a)  # an option's value
+        else:
+            scripts.append((Path(a), []))
+    scripts = scripts or [(p, []) for p in sorted((ROOT / "bench").glob("bench_*.py"))]
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     if not RESULTS.exists():
         RESULTS.write_text("# Benchmark results\n\nAppended by `make bench` (bench/record.py), newest last.\n",
                            encoding="utf-8")
     sections = [heading()]
     code = 0
-    for script in scripts:
-        print(f"== {script}", flush=True)
-        code, output, seconds = run(script)
+    for script, options in scripts:
+        print(f"== {script} {' '.join(options)}".rstrip(), flush=True)
+        code, output, seconds = run(script, options)
         rel = script.resolve().relative_to(ROOT) if script.resolve().is_relative_to(ROOT) else script
+        rel = f"{rel} {' '.join(options)}".rstrip()
         status = "" if code == 0 else f", exit code {code}"
         sections.append(f"### {rel} ({seconds:.0f} s{status})\n\n```\n{output.rstrip()}\n```\n")
         if code != 0:
