@@ -479,9 +479,11 @@ def _fleet(args: argparse.Namespace, config: Config, term: _Terminal, out_dir: P
     result["fleet"] = summary.to_dict()
     result["files"] += [str(summary.table), str(summary.report)]
     c = summary.counts
-    where = ("nothing to identify" if summary.cluster is None else
-             f"{summary.cluster.workers} workers ({'local' if summary.cluster.local else summary.cluster.scheduler}), "
-             f"{summary.seconds:.1f} s, {summary.logs_per_minute:.1f} logs/min")
+    where = "nothing to identify"
+    if summary.cluster is not None:
+        n = summary.cluster.workers
+        where = (f"{n} worker{'' if n == 1 else 's'} ({'local' if summary.cluster.local else summary.cluster.scheduler}), "
+                 f"{summary.seconds:.1f} s, {summary.logs_per_minute:.1f} logs/min")
     rows = [("logs", f"{summary.found} found, {summary.skipped} already in the table, {summary.identified} identified"),
             ("outcome", f"{c['ok']} ok ({summary.approximate} approximate), {c['failed']} failed, {c['crashed']} crashed"),
             ("ran on", where),

@@ -143,7 +143,7 @@ def run(paths: Sequence[Path], out_dir: Path, options: FleetOptions | None = Non
         try:
             with connect(opt.scheduler, opt.workers) as (client, info):
                 if progress is not None:
-                    progress(0, len(todo), f"{info.workers} workers, {info.threads} threads")
+                    progress(0, len(todo), f"{info.workers} worker(s), {info.threads} thread(s)")
                 identify_all(client, [(src, digest) for digest, src in todo.items()],
                              id_options.model_dump(mode="json"), task, on_row)
         finally:
