@@ -50,6 +50,9 @@ class FitQuality:
     """Bandwidth of the load-state observer [Hz] (0: the load simulated open loop)."""
     effective_samples: float
     """Independent residual samples behind the intervals."""
+    converged: bool = True
+    """The least squares stopped at a stationary point (its step or cost change below tolerance), not at
+    its evaluation limit: only then do the intervals, from the curvature there, describe the estimate."""
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
