@@ -14,12 +14,19 @@ A result is *approximate* when
   anti-resonance frequencies to ``MODE_TOLERANCE`` — the record does not
   determine them (a short or noisy record, a backlash the excitation barely opens).
 
+Intervals. The estimator's covariance describes the noise's effect on the estimate, not a model
+error's: when the residual exceeds its noise — the good-fit level, the quantization floor, or its
+own white, stationary part (:func:`noise_part`; not where the first rule above found the residual
+to be model error), whichever is largest — every interval is widened by that ratio (the Birge
+ratio, ``FitQuality.interval_scale``) before it is reported and checked.
+
 An approximate result is still a result: result.json and the report are written and say why.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,7 +37,7 @@ from .estimator import EDGE_SAMPLES, PARAMETER_NAMES, PemFit
 from .result import FitQuality
 from .twomass import TwoMassParameters, modes
 
-__all__ = ["assess", "mode_stderr", "whiteness"]
+__all__ = ["assess", "mode_stderr", "noise_part", "whiteness"]
 
 #: Step of the central differences in the log-parameters behind :func:`mode_stderr`.
 _MODE_STEP = 1e-5
@@ -63,6 +70,19 @@ def whiteness(v: NDArray[np.float64], rate_hz: float) -> tuple[float, float]:
     w = np.array([np.sqrt(np.mean(x * x)) for x in np.array_split(v, 50) if x.size])
     med = float(np.median(w))
     return flat, (float(np.percentile(w, 90)) / med if med > 0 else math.inf)
+
+
+def noise_part(v: NDArray[np.float64], rate_hz: float) -> float:
+    """RMS of the white, stationary noise in a residual sampled at ``rate_hz`` [its unit]: its RMS if
+    its spectrum were flat at its median level (narrow-band structure lifts the mean, not the median),
+    and at most its median window RMS (bursts lift the mean, not the median) — windows and band as
+    :func:`whiteness`."""
+    f, P = welch(v, fs=rate_hz, nperseg=min(256, v.size))
+    band = (f > 5.0) & (f < 0.4 * rate_hz) & (P > 0)
+    rms = float(np.sqrt(np.mean(v * v)))
+    flat_rms = rms * math.sqrt(float(np.median(P[band]) / np.mean(P[band]))) if band.any() else 0.0
+    w = np.array([np.sqrt(np.mean(x * x)) for x in np.array_split(v, 50) if x.size])
+    return min(flat_rms, float(np.median(w)))
 
 
 def mode_stderr(fit: PemFit) -> dict[str, float]:
@@ -100,9 +120,20 @@ def assess(fit: PemFit, *, torque_rms_nm: float, motor_samples: int, decimated_r
     ratio = float(np.sqrt(np.mean(motor * motor))) / max(torque_rms_nm, 1e-300)
     flat, stationary = whiteness(motor, decimated_rate_hz)
     level = APPROXIMATE_FACTOR * max(good_fit_ratio, noise_floor_ratio)
-    noise_limited = ratio > level and flat >= WHITE_FLATNESS and stationary <= WHITE_STATIONARY
+    white = flat >= WHITE_FLATNESS and stationary <= WHITE_STATIONARY
+    noise_limited = ratio > level and white
+    misfit = ratio > level and not noise_limited
+    # the Birge ratio: what the model leaves beyond its noise is model error, whose effect on the estimate
+    # the residual's statistics cannot show; the noise is the known floors, and, unless the residual was
+    # just found to be model error, its own white, stationary part
+    noise = max(good_fit_ratio, noise_floor_ratio)
+    if not misfit:
+        noise = max(noise, noise_part(motor, decimated_rate_hz) / max(torque_rms_nm, 1e-300))
+    scale = max(1.0, ratio / noise)
+    if scale > 1.0:
+        fit = replace(fit, covariance=fit.covariance * scale ** 2)
     reasons: list[str] = []
-    if ratio > level and not noise_limited:
+    if misfit:
         reasons.append(f"the model leaves {100 * ratio:.2f} % of the torque unexplained "
                        f"({ratio / max(good_fit_ratio, noise_floor_ratio):.0f}× what a model that describes the "
                        "axis leaves), and not as white noise: the axis has dynamics the model does not reproduce; "
@@ -131,4 +162,4 @@ def assess(fit: PemFit, *, torque_rms_nm: float, motor_samples: int, decimated_r
                       window_rms_p90_over_median=stationary, noise_limited=noise_limited,
                       approximate=bool(reasons), reasons=tuple(reasons), cutoff_hz=cutoff_hz,
                       observer_bandwidth_hz=observer_bandwidth_hz, effective_samples=fit.n_effective,
-                      converged=fit.converged)
+                      converged=fit.converged, interval_scale=scale)

@@ -419,6 +419,8 @@ def _identification(run: _Run, pem: PemFit, quality: FitQuality, iterations: lis
     from .start import measured_band_hz
 
     eps = pem.epsilon_rad
+    if quality.interval_scale > 1.0:  # the intervals as the assessment widened them
+        pem = replace(pem, covariance=pem.covariance * quality.interval_scale ** 2)
     detected = math.degrees(eps) > run.opt.no_backlash_threshold_deg
     if not detected:
         run.notes.append(f"no backlash detected: ε̂ = {math.degrees(eps):.4f}° ≤ {run.opt.no_backlash_threshold_deg}°")
