@@ -73,7 +73,8 @@ def _estimates(result: Any) -> dict[str, Any]:
     fit = d.get("fit", {})
     return {"estimate": est, "interval_deg": list(d["backlash"]["epsilon_interval_deg"]),
             "approximate": bool(fit.get("approximate", False)), "residual_ratio": fit.get("residual_ratio"),
-            "detected": bool(d["backlash"].get("detected", True))}
+            "detected": bool(d["backlash"].get("detected", True)), "fit": fit,
+            "relative_stderr": d.get("two_mass_relative_stderr")}
 
 
 def judge(truth: dict[str, Any], est: dict[str, Any]) -> dict[str, Any]:

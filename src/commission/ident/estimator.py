@@ -161,7 +161,10 @@ class _Objective:
         if pr.load_position is not None:
             w = self.load_weight * sim.load_error[1:-1:pr.decimation]
             v = np.concatenate((v, w[EDGE_SAMPLES:-EDGE_SAMPLES]))
-        if not np.all(np.isfinite(v)):  # a diverged simulation: a large, flat residual the fit steps back from
+        # a diverged simulation — non-finite, or a sample past the flat residual's level (a torque residual
+        # 10× the RMS torque is no plant's; finite but huge, its differences overflowed the Jacobian): a
+        # large, flat residual the fit steps back from, never above it
+        if not (np.all(np.isfinite(v)) and float(np.max(np.abs(v), initial=0.0)) <= self.bad):
             return np.full(v.shape, self.bad)
         return v
 

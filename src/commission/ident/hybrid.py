@@ -224,7 +224,13 @@ def _start_stage(run: _Run) -> None:
             raise
         run.notes.append(f"frequency-domain start failed ({err}); the load encoder's start is used")
     top = math.radians(EPSILON_EXTEND_MAX_DEG)
-    run.encoders = load_encoder_start(run.problem, top) if run.use_load else None
+    first = run.problem
+
+    def encoders(problem: Any) -> Any:
+        return load_encoder_start(problem, top)
+
+    # the encoders' start at the first low-pass only where it gives the start, or stands in for a failed one
+    run.encoders = encoders(first) if run.use_load and run.start is None else None
     if run.start is None and run.encoders is None:
         raise IdentificationError("neither the frequency response nor the encoders give a two-mass plant")
     run.base = run.start.parameters if run.start is not None else run.encoders.parameters
@@ -235,7 +241,9 @@ def _start_stage(run: _Run) -> None:
         run.problem = run.prepared(run.cutoff["cutoff_hz"])
         ref = float(np.sqrt(np.mean(run.problem.torque_f ** 2)))
         if run.use_load:
-            run.encoders = load_encoder_start(run.problem, top) or run.encoders
+            run.encoders = encoders(run.problem) or run.encoders or encoders(first)
+    elif run.use_load and run.encoders is None:
+        run.encoders = encoders(run.problem)
     run.torque_rms_nm = ref
     if run.start is not None and "current_loop" in opt.model_terms:
         run.lag_s = max(run.start.delay_s - 1.0 / fs, 0.0)
@@ -411,6 +419,8 @@ def _identification(run: _Run, pem: PemFit, quality: FitQuality, iterations: lis
     from .start import measured_band_hz
 
     eps = pem.epsilon_rad
+    if quality.interval_scale > 1.0:  # the intervals as the assessment widened them
+        pem = replace(pem, covariance=pem.covariance * quality.interval_scale ** 2)
     detected = math.degrees(eps) > run.opt.no_backlash_threshold_deg
     if not detected:
         run.notes.append(f"no backlash detected: ε̂ = {math.degrees(eps):.4f}° ≤ {run.opt.no_backlash_threshold_deg}°")
@@ -432,11 +442,6 @@ def _resonance_hz(p: TwoMassParameters) -> float:
         return float(modes(p).f_resonance_hz)
     except IdentificationError:  # no complex pole pair: nothing resonates
         return 0.0
-
-
-def scan_top_deg(opt: IdentificationOptions) -> float:
-    """Top of the ε range the start looks in first [deg]."""
-    return opt.epsilon_bounds_deg[1]
 
 
 def _best_cell(sc: Any) -> Any:

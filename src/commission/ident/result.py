@@ -50,6 +50,13 @@ class FitQuality:
     """Bandwidth of the load-state observer [Hz] (0: the load simulated open loop)."""
     effective_samples: float
     """Independent residual samples behind the intervals."""
+    interval_scale: float = 1.0
+    """Factor (≥ 1) the covariance's intervals are widened by: the residual over its noise (the good-fit
+    level, the quantization floor or its own white, stationary part): model error, which the residual's
+    statistics cannot show [-]."""
+    converged: bool = True
+    """The least squares stopped at a stationary point (its step or cost change below tolerance), not at
+    its evaluation limit: only then do the intervals, from the curvature there, describe the estimate."""
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
