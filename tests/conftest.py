@@ -6,12 +6,14 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
 from commission.cli import main
+from commission.ident.twomass import TwoMassParameters
 
 
 @dataclass(frozen=True)
@@ -52,3 +54,14 @@ def quick_sim_run(tmp_path_factory: pytest.TempPathFactory) -> CliRun:
     run = run_cli("--sim", "--config", "quick", "--json", out=tmp_path_factory.mktemp("quick-sim"))
     assert run.code == 0, run.stderr
     return run
+
+
+def two_mass_plant(ratio: float, f_r: float, zeta: float, B_l: float | None = None,
+                   J_m: float = 4.78e-4) -> TwoMassParameters:
+    """bench/bench_identify.py's parameterisation of the spread of plants: J_l = ratio·J_m, K for
+    the resonance f_r [Hz], D for the damping ratio ζ, B_l scaled with the load unless given."""
+    J_l = ratio * J_m
+    w = 2 * math.pi * f_r
+    return TwoMassParameters(J_m=J_m, J_l=J_l, B_m=0.84e-2,
+                             B_l=B_l if B_l is not None else 0.53e-2 * math.sqrt(ratio / 0.4),
+                             K=w * w * J_l / (1 + ratio), D=2 * zeta * w / (1 / J_m + 1 / J_l))

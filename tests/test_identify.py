@@ -22,16 +22,9 @@ from commission.ident.twomass import REFERENCE_PLANT, TwoMassParameters, modes
 from commission.recording import Recording
 from sim_drive.plant import Plant, PlantParameters
 
+from conftest import two_mass_plant
+
 FS = 8000.0
-J_M = 4.78e-4
-
-
-def _plant(ratio: float, f_r: float, zeta: float, B_l: float | None = None) -> TwoMassParameters:
-    """J_l = ratio·J_m, K for the resonance f_r [Hz], D for the damping ratio ζ."""
-    J_l = ratio * J_M
-    w = 2 * math.pi * f_r
-    return TwoMassParameters(J_m=J_M, J_l=J_l, B_m=0.84e-2, B_l=B_l if B_l is not None else 0.53e-2 * math.sqrt(ratio / 0.4),
-                             K=w * w * J_l / (1 + ratio), D=2 * zeta * w / (1 / J_M + 1 / J_l))
 
 
 LIGHTLY_DAMPED = TwoMassParameters(**{**REFERENCE_PLANT.as_dict(), "D": 0.0045})
@@ -43,16 +36,16 @@ CASES: dict[str, tuple[TwoMassParameters, dict]] = {
     "friction": (REFERENCE_PLANT, dict(epsilon_deg=0.40, coulomb_motor_nm=0.01, coulomb_load_nm=0.01)),
     "current_loop": (REFERENCE_PLANT, dict(epsilon_deg=0.40, current_loop_bandwidth_hz=1000.0, torque_noise_nm=1e-3)),
     # impact-rich: at the true parameters the load simulated open loop leaves 28 % of τ_ref
-    "impact_rich_100hz": (_plant(1.0, 100.0, 0.05, B_l=0.53e-2 * math.sqrt(2.5)), dict(epsilon_deg=0.20, seed=3)),
-    "heavy_60hz": (_plant(2.0, 60.0, 0.07, B_l=0.53e-2 * math.sqrt(5.0)), dict(epsilon_deg=0.30, seed=7)),
-    "soft_heavy": (_plant(4.0, 25.0, 0.17, B_l=1.5e-2), dict(epsilon_deg=0.60)),
+    "impact_rich_100hz": (two_mass_plant(1.0, 100.0, 0.05, B_l=0.53e-2 * math.sqrt(2.5)), dict(epsilon_deg=0.20, seed=3)),
+    "heavy_60hz": (two_mass_plant(2.0, 60.0, 0.07, B_l=0.53e-2 * math.sqrt(5.0)), dict(epsilon_deg=0.30, seed=7)),
+    "soft_heavy": (two_mass_plant(4.0, 25.0, 0.17, B_l=1.5e-2), dict(epsilon_deg=0.60)),
     "wide_backlash": (REFERENCE_PLANT, dict(epsilon_deg=1.5)),
     # J_l/J_m 0.2, 200 Hz, ζ 0.11: 645 impacts in 10 s (bench_identify's "stiff light 200Hz")
-    "stiff_light_200hz": (_plant(0.2, 200.0, 0.11, B_l=0.3e-2), dict(epsilon_deg=0.25)),
+    "stiff_light_200hz": (two_mass_plant(0.2, 200.0, 0.11, B_l=0.3e-2), dict(epsilon_deg=0.25)),
     "coarse_encoder": (LIGHTLY_DAMPED, dict(epsilon_deg=0.25, seed=5, encoder_bits_motor=17)),
     "noisy": (REFERENCE_PLANT, dict(epsilon_deg=0.40, torque_noise_nm=3e-3, seed=5)),
     # ~2000 impacts in 10 s of a load the excitation throws around the gap: not followed
-    "chaotic_300hz": (_plant(2.0, 300.0, 0.15, B_l=0.53e-2 * math.sqrt(5.0)), dict(epsilon_deg=0.50, seed=7)),
+    "chaotic_300hz": (two_mass_plant(2.0, 300.0, 0.15, B_l=0.53e-2 * math.sqrt(5.0)), dict(epsilon_deg=0.50, seed=7)),
 }
 _cache: dict[tuple, Identification] = {}
 

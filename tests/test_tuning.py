@@ -37,16 +37,9 @@ from commission.tuning.closedloop import simulate_closed_loop
 from commission.tuning.loop import loop_transfer
 from commission.tuning.scenarios import controller_vector
 
+from conftest import two_mass_plant
+
 FS = 8000.0
-J_M = 4.78e-4
-
-
-def _plant(ratio: float, f_r: float, zeta: float, B_l: float | None = None) -> TwoMassParameters:
-    """bench/bench_identify.py's parameterisation of the spread of plants."""
-    J_l = ratio * J_M
-    w = 2 * math.pi * f_r
-    return TwoMassParameters(J_m=J_M, J_l=J_l, B_m=0.84e-2, B_l=B_l if B_l is not None else 0.53e-2 * math.sqrt(ratio / 0.4),
-                             K=w * w * J_l / (1 + ratio), D=2 * zeta * w / (1 / J_M + 1 / J_l))
 
 
 #: the design input: the reference plant as an identification may give it (±1–2 % errors)
@@ -196,7 +189,7 @@ def test_compensation_holds_for_moves_of_any_size(amplitude: float, move_time: f
 def test_position_step_compensation_over_the_spread(ratio: float, f_r: float, zeta: float, eps_deg: float,
                                                     coulomb: float) -> None:
     """Designed on the true parameters (the friction unmodelled), verified on the true plant."""
-    p = _plant(ratio, f_r, zeta)
+    p = two_mass_plant(ratio, f_r, zeta)
     s = design(p, TuningOptions(), epsilon_rad=math.radians(eps_deg))
     truth = PlantParameters(**p.as_dict(), epsilon_deg=eps_deg, coulomb_motor_nm=coulomb, coulomb_load_nm=coulomb)
     v = verify(s, truth, scenarios=("position_step",))
@@ -293,7 +286,7 @@ def test_no_compensation_without_backlash() -> None:
 
 # a plant whose resonance lies above the velocity loop of a drive with a 1 kHz current loop
 # and one sample of computation delay: J_l/J_m = 5, 300 Hz, ζ = 0.05
-NOTCH_PLANT = _plant(5.0, 300.0, 0.05)
+NOTCH_PLANT = two_mass_plant(5.0, 300.0, 0.05)
 REAL_DRIVE = {"current_loop_bandwidth_hz": 1000.0, "computation_delay_samples": 1}
 
 
