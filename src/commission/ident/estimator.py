@@ -251,7 +251,6 @@ def fit(problem: ResidualProblem, start: TwoMassParameters, epsilon_rad: float, 
     """
     obj = _Objective(problem, observer, terms, load_weight_nm_per_rad)
     ref = float(np.sqrt(np.mean(problem.torque_f ** 2)))
-    obj.bad = 10.0 * ref
     z0 = [math.log(max(getattr(start, n), 1e-12 * max(start.B_m + start.B_l, 1e-12))) for n in PARAMETER_NAMES]
     z0 += [math.degrees(epsilon_rad)]
     lo = [z - _LOG_RANGE for z in z0[:6]] + [0.0]
@@ -267,6 +266,13 @@ def fit(problem: ResidualProblem, start: TwoMassParameters, epsilon_rad: float, 
             z0.append(max(coulomb_motor_nm if name == "F_cm" else coulomb_load_nm, 0.0))
             lo.append(0.0), hi.append(10.0 * f_scale), scale.append(0.01 * f_scale), steps.append(1e-6 * f_scale)
     z = np.clip(np.array(z0), lo, hi)
+    # the plateau lies above the start's own residual: a poor start whose residual peaks past 10× the torque
+    # is still a point the fit can move from, not a flat plateau it would stop on at once
+    obj.bad = math.inf
+    v0 = obj(z)
+    obj.bad = 10.0 * ref
+    if np.all(np.isfinite(v0)):
+        obj.bad = max(obj.bad, 2.0 * float(np.max(np.abs(v0), initial=0.0)))
     lo_a, hi_a, scale_a, steps_a = (np.array(v, dtype=float) for v in (lo, hi, scale, steps))
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
         if hold_epsilon:
@@ -296,7 +302,7 @@ def fit(problem: ResidualProblem, start: TwoMassParameters, epsilon_rad: float, 
     return PemFit(parameters=p, epsilon_rad=eps, coulomb_motor_nm=extra.get("F_cm", 0.0),
                   coulomb_load_nm=extra.get("F_cl", 0.0), lag_s=1e-6 * extra.get("T_c_us", 0.0), terms=terms,
                   residual=r, cost_nm=float(np.sqrt(np.mean(r * r))), names=obj.names, covariance=cov,
-                  n_effective=n_eff, evaluations=obj.calls + len(shifts), converged=bool(res.status > 0),  # type: ignore[attr-defined]
+                  n_effective=n_eff, evaluations=obj.calls + len(shifts), converged=bool(res.status > 0) and not np.all(r == obj.bad),  # type: ignore[attr-defined]
                   message=str(res.message),  # type: ignore[attr-defined]
                   discretization={n: float(np.sqrt(sum(d[i] ** 2 for d in shifts))) for i, n in enumerate(obj.names)})
 
