@@ -191,3 +191,32 @@ def test_the_answer_does_not_depend_on_the_thread_count_or_on_perturbations_far_
     assert abs(moved.epsilon_deg - base.epsilon_deg) <= 0.001
     for p in ("J_m", "J_l", "K"):
         assert getattr(moved.parameters, p) == pytest.approx(getattr(base.parameters, p), rel=1e-4), p
+
+
+def test_a_fit_that_explains_none_of_the_torque_claims_no_precision() -> None:
+    # the fit's curvature at a point where the residual is as large as the torque itself says nothing
+    # about where the plant is: the intervals are then the whole range, never a tight one around noise
+    from commission.ident.assess import assess
+    from commission.ident.estimator import PemFit, ModelTerms
+
+    rng = np.random.default_rng(1)
+    residual = rng.standard_normal(4000)
+    names = ("ln J_m", "ln J_l", "ln B_m", "ln B_l", "ln K", "ln D", "eps_deg")
+    pem = PemFit(parameters=REFERENCE_PLANT, epsilon_rad=math.radians(0.4), coulomb_motor_nm=0.0,
+                 coulomb_load_nm=0.0, lag_s=0.0, terms=ModelTerms(), residual=residual, cost_nm=1.0, names=names,
+                 covariance=np.eye(7) * 1e-10, n_effective=4000.0, evaluations=10, converged=True, message="")
+    kw = dict(motor_samples=4008, decimated_rate_hz=800.0, good_fit_ratio=0.005, noise_floor_ratio=0.001,
+              cutoff_hz=400.0, observer_bandwidth_hz=400.0, sample_rate_hz=8000.0, resonance_hz=65.0)
+    lost = assess(pem, torque_rms_nm=0.5, **kw)  # residual RMS 1 N·m, twice the torque's
+    assert not lost.determined and lost.approximate
+    assert any("unexplained" in r and "unbounded" in r for r in lost.reasons)
+    fine = assess(pem, torque_rms_nm=400.0, **kw)  # the same residual, 0.25 % of the torque
+    assert fine.determined
+
+
+def test_a_load_encoder_gives_the_start_where_the_gap_pulls_the_frequency_response_low() -> None:
+    # 1.5° of gap on the reference plant: the gap softens the spring the FRD sees; both encoders'
+    # equations of motion give the start, and the record is identified within the tolerances
+    res = _identified("wide_backlash", load=True)
+    _within(res, "wide_backlash")
+    _covers(res, "wide_backlash")

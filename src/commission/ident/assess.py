@@ -3,6 +3,8 @@ whether its intervals are tight enough to act on (:class:`commission.ident.resul
 
 A result is *approximate* when
 
+* the model explains none of the torque (its residual at least RMS τ_ref, ``UNDETERMINED_RATIO``):
+  nothing is determined, and every interval is the whole range the fit searched; or
 * the model leaves more than ``APPROXIMATE_FACTOR`` × max(good-fit level, quantization floor) of
   the torque unexplained and that residual is not white, stationary noise — the axis has dynamics
   the model does not reproduce, and the parameters may be biased beyond their intervals; or
@@ -43,6 +45,9 @@ __all__ = ["assess", "mode_stderr", "noise_part", "whiteness"]
 _MODE_STEP = 1e-5
 
 APPROXIMATE_FACTOR = 5.0
+#: Residual / RMS τ_ref at and above which nothing is determined: τ_ref's own RMS is what a model
+#: predicting no motion at all leaves.
+UNDETERMINED_RATIO = 1.0
 #: Spectral flatness and window-RMS stationarity of a residual that is white torque noise.
 WHITE_FLATNESS = 0.95
 WHITE_STATIONARY = 1.3
@@ -123,6 +128,9 @@ def assess(fit: PemFit, *, torque_rms_nm: float, motor_samples: int, decimated_r
     white = flat >= WHITE_FLATNESS and stationary <= WHITE_STATIONARY
     noise_limited = ratio > level and white
     misfit = ratio > level and not noise_limited
+    # a residual as large as the torque itself (no model leaves that much) or a diverged one: the local
+    # curvature says nothing about where the plant is
+    determined = bool(ratio < UNDETERMINED_RATIO)
     # the Birge ratio: what the model leaves beyond its noise is model error, whose effect on the estimate
     # the residual's statistics cannot show; the noise is the known floors, and, unless the residual was
     # just found to be model error, its own white, stationary part
@@ -133,7 +141,11 @@ def assess(fit: PemFit, *, torque_rms_nm: float, motor_samples: int, decimated_r
     if scale > 1.0:
         fit = replace(fit, covariance=fit.covariance * scale ** 2)
     reasons: list[str] = []
-    if misfit:
+    if not determined:
+        reasons.append(f"the model leaves {100 * ratio:.0f} % of the torque unexplained, as much as no model at "
+                       "all: the record does not determine the parameters or ε under this model; their intervals "
+                       "are unbounded, ε's the whole range the fit searched")
+    elif misfit:
         reasons.append(f"the model leaves {100 * ratio:.2f} % of the torque unexplained "
                        f"({ratio / max(good_fit_ratio, noise_floor_ratio):.0f}× what a model that describes the "
                        "axis leaves), and not as white noise: the axis has dynamics the model does not reproduce; "
@@ -162,4 +174,4 @@ def assess(fit: PemFit, *, torque_rms_nm: float, motor_samples: int, decimated_r
                       window_rms_p90_over_median=stationary, noise_limited=noise_limited,
                       approximate=bool(reasons), reasons=tuple(reasons), cutoff_hz=cutoff_hz,
                       observer_bandwidth_hz=observer_bandwidth_hz, effective_samples=fit.n_effective,
-                      converged=fit.converged, interval_scale=scale)
+                      converged=fit.converged, interval_scale=scale, determined=determined)

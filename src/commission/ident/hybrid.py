@@ -162,6 +162,8 @@ class _Run:
     torque_rms_nm: float = 0.0
     lag_s: float = 0.0
     """The start's current-loop time constant (delay fitted beyond the sample's) [s]."""
+    epsilon_max_rad: float = math.inf
+    """Upper bound of ε in the fit [rad]."""
 
     @property
     def fs(self) -> float:
@@ -229,11 +231,13 @@ def _start_stage(run: _Run) -> None:
     def encoders(problem: Any) -> Any:
         return load_encoder_start(problem, top)
 
-    # the encoders' start at the first low-pass only where it gives the start, or stands in for a failed one
-    run.encoders = encoders(first) if run.use_load and run.start is None else None
+    # with a load encoder, the encoders' start (no simulation, no FRD) at the first low-pass is the start: the
+    # FRD's resonance is pulled low by the gap on backlash-rich records, and the low-pass chosen from a low
+    # resonance would cut the real one off
+    run.encoders = encoders(first) if run.use_load else None
     if run.start is None and run.encoders is None:
         raise IdentificationError("neither the frequency response nor the encoders give a two-mass plant")
-    run.base = run.start.parameters if run.start is not None else run.encoders.parameters
+    run.base = run.encoders.parameters if run.encoders is not None else run.start.parameters
     ref = float(np.sqrt(np.mean(run.problem.torque_f ** 2)))
     run.cutoff = residual_cutoff(run.rec, run.base, run.band[1], opt.residual_cutoff_hz, ref,
                                  _QUANTIZATION_TARGET * opt.good_fit_ratio)
@@ -241,9 +245,7 @@ def _start_stage(run: _Run) -> None:
         run.problem = run.prepared(run.cutoff["cutoff_hz"])
         ref = float(np.sqrt(np.mean(run.problem.torque_f ** 2)))
         if run.use_load:
-            run.encoders = encoders(run.problem) or run.encoders or encoders(first)
-    elif run.use_load and run.encoders is None:
-        run.encoders = encoders(run.problem)
+            run.encoders = encoders(run.problem) or run.encoders
     run.torque_rms_nm = ref
     if run.start is not None and "current_loop" in opt.model_terms:
         run.lag_s = max(run.start.delay_s - 1.0 / fs, 0.0)
@@ -323,15 +325,11 @@ def _fit_stage(run: _Run, cell: Any, scan_detail: dict[str, Any]) -> tuple[PemFi
                            D=max(p.D, 1e-6 * p.K))
     fc = run.problem.cutoff_hz
 
-    def observer(factor: float) -> Observer:
-        return Observer.design(fs, factor * opt.observer_bandwidth_factor * fc, 2.0 * fc, p0.K, p0.D,
+    def observer(factor: float, at: TwoMassParameters) -> Observer:
+        return Observer.design(fs, factor * opt.observer_bandwidth_factor * fc, 2.0 * fc, at.K, at.D,
                                load_encoder=run.use_load)
 
-    fast, slow = observer(1.0), observer(0.5)
-    # the estimate's sensitivity to how the residual is discretized is part of its uncertainty: the motor
-    # position a global spline instead, the observer half as fast
-    alternates = ((run.prepared(fc, "spline" if opt.motor_interpolation == "local" else "local"), fast),
-                  (run.problem, slow))
+    slow = observer(0.5, p0)
     friction = scan_detail["friction"]
     f_total = max(friction["coulomb_nm"] if friction else cell.coulomb_nm, 0.0)
     f_load = friction["load_nm"] if friction else 0.0
@@ -342,7 +340,7 @@ def _fit_stage(run: _Run, cell: Any, scan_detail: dict[str, Any]) -> tuple[PemFi
                             and (friction is not None or run.encoders is not None or cell.coulomb_z2 > math.log(n)),
                             coulomb_load=friction is not None, current_loop="current_loop" in opt.model_terms)
     top = scan_detail["extended_to_deg"] or opt.epsilon_bounds_deg[1]
-    eps_max = math.radians(2.0 * max(top, math.degrees(cell.epsilon_rad)))
+    eps_max = run.epsilon_max_rad = math.radians(2.0 * max(top, math.degrees(cell.epsilon_rad)))
     common = dict(epsilon_max_rad=eps_max, load_weight_nm_per_rad=run.load_weight, threads=opt.threads,
                   max_nfev=opt.max_fit_evaluations)
     # continuation in the observer's gain: the slow one's basin in the linear parameters is wide, the
@@ -350,6 +348,13 @@ def _fit_stage(run: _Run, cell: Any, scan_detail: dict[str, Any]) -> tuple[PemFi
     first = fit(run.problem, p0, cell.epsilon_rad, candidates, slow, coulomb_motor_nm=f_total - f_load,
                 coulomb_load_nm=f_load, lag_s=run.lag_s, **common)
     terms, selection = significant_terms(first, keep_all=opt.term_selection == "keep_all")
+    # the configured observer's gain for the stiffness the first fit found: its loop gain is relative to
+    # K + D·fs, and designed for the start's a fit that moved K several-fold would make it unstable
+    fast = observer(1.0, first.parameters)
+    # the estimate's sensitivity to how the residual is discretized is part of its uncertainty: the motor
+    # position a global spline instead, the observer half as fast
+    alternates = ((run.prepared(fc, "spline" if opt.motor_interpolation == "local" else "local"), fast),
+                  (run.problem, observer(0.5, first.parameters)))
 
     def refit(p: TwoMassParameters, eps: float, hold: bool) -> PemFit:
         return fit(run.problem, p, eps, terms, fast, alternates=alternates, coulomb_motor_nm=first.coulomb_motor_nm,
@@ -428,11 +433,12 @@ def _identification(run: _Run, pem: PemFit, quality: FitQuality, iterations: lis
     num, den = params.velocity_tf()
     return Identification(
         method=Method.HYBRID, parameters=params, epsilon_rad=eps,
-        epsilon_interval_rad=_epsilon_interval(pem, float(run.cutoff["position_step_rad"])),
+        epsilon_interval_rad=(_epsilon_interval(pem, float(run.cutoff["position_step_rad"])) if quality.determined
+                              else (0.0, run.epsilon_max_rad)),
         evaluations=scan_evaluations + pem.evaluations, modes=modes(params), num=num, den=den,
         delay_s=1.0 / run.fs, iterations=iterations, stages=stages, source_samples=len(run.rec),
         sample_rate_hz=run.fs, backlash_detected=detected, notes=run.notes, fit=quality,
-        parameter_stderr=pem.relative_stderr, parameter_interval=_intervals(pem), friction=_friction(pem, run.opt),
+        parameter_stderr=pem.relative_stderr, parameter_interval=_intervals(pem, quality.determined), friction=_friction(pem, run.opt),
         current_loop=_current_loop(pem), selection=pem.selection or None,
         measured_band_hz=measured_band_hz(run.start.frd) if run.start is not None else run.band)
 
@@ -463,11 +469,11 @@ def _epsilon_interval(pem: PemFit, position_step_rad: float) -> tuple[float, flo
     return max(pem.epsilon_rad - half, 0.0), pem.epsilon_rad + half
 
 
-def _intervals(pem: PemFit) -> dict[str, tuple[float, float]]:
+def _intervals(pem: PemFit, determined: bool = True) -> dict[str, tuple[float, float]]:
     out = {}
     for name, rel in pem.relative_stderr.items():
         v = float(getattr(pem.parameters, name))
-        half = min(max(1.96 * rel, _RELATIVE_RESOLUTION), 50.0) if math.isfinite(rel) else 50.0  # e^50: unbounded
+        half = min(max(1.96 * rel, _RELATIVE_RESOLUTION), 50.0) if math.isfinite(rel) and determined else 50.0  # e^50: unbounded
         out[name] = (v * math.exp(-half), v * math.exp(half))
     return out
 

@@ -57,6 +57,10 @@ class FitQuality:
     converged: bool = True
     """The least squares stopped at a stationary point (its step or cost change below tolerance), not at
     its evaluation limit: only then do the intervals, from the curvature there, describe the estimate."""
+    determined: bool = True
+    """False when the model explains none of the torque (its residual is at least RMS τ_ref, as much as no
+    model at all leaves): the estimates carry no information, and every interval is the whole range the
+    fit searched."""
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
