@@ -92,7 +92,9 @@ def _covers(res: Identification, name: str) -> None:
 
 
 @pytest.mark.parametrize("name", ["reference", "lightly_damped", "lightly_damped_seed9", "impact_rich_100hz",
-                                  "heavy_60hz", "soft_heavy", "noisy", "coarse_encoder"])
+                                  "heavy_60hz", "soft_heavy", "noisy", "coarse_encoder",
+                                  # the gap softens the spring the FRD sees: a start too soft for the fit's basin
+                                  "wide_backlash"])
 def test_plants_the_model_describes_are_identified_within_the_tolerances(name: str) -> None:
     res = _identified(name)
     _within(res, name)
