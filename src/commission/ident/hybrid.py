@@ -425,8 +425,13 @@ def _stiffer_starts(run: _Run, cell: Any, pem: PemFit, observer: Any) -> tuple[_
         if not 0.0 < _resonance_hz(base) < 0.25 * run.fs:
             continue
         other = replace(run, base=base, notes=[])
-        c, detail = _scan_stage(other)
-        p, o, _ = _fit_stage(other, c, detail)
+        try:
+            c, detail = _scan_stage(other)
+            p, o, _ = _fit_stage(other, c, detail)
+        except (IdentificationError, ValueError, np.linalg.LinAlgError) as err:
+            # a start this far off may leave the simulation no finite point to start from: not a start then
+            tried.append({"stiffness_factor": factor, "residual_ratio": math.inf, "failed": str(err)})
+            continue
         spent += detail["evaluations"] + p.evaluations
         tried.append({"stiffness_factor": factor, "residual_ratio": p.cost_nm / run.torque_rms_nm})
         if p.cost_nm < best[2].cost_nm:
