@@ -6,8 +6,10 @@ A result is *approximate* when
 * the model explains none of the torque (its residual at least RMS τ_ref, ``UNDETERMINED_RATIO``):
   nothing is determined, and every interval is the whole range the fit searched; or
 * the model leaves more than ``APPROXIMATE_FACTOR`` × max(good-fit level, quantization floor) of
-  the torque unexplained and that residual is not white, stationary noise — the axis has dynamics
-  the model does not reproduce, and the parameters may be biased beyond their intervals; or
+  the torque unexplained and that residual is not white, stationary noise, or more than
+  ``APPROXIMATE_FACTOR`` × the good-fit level in bursts (the quantization floor is stationary) — the
+  axis has dynamics the model does not reproduce, and the parameters may be biased beyond their
+  intervals; or
 * the drive samples fewer than ``SAMPLES_PER_RESONANCE`` times per resonance period; or
 * the least squares stopped at its evaluation limit, not at a stationary point: the intervals, from
   the curvature there, do not describe the estimate; or
@@ -127,7 +129,10 @@ def assess(fit: PemFit, *, torque_rms_nm: float, motor_samples: int, decimated_r
     level = APPROXIMATE_FACTOR * max(good_fit_ratio, noise_floor_ratio)
     white = flat >= WHITE_FLATNESS and stationary <= WHITE_STATIONARY
     noise_limited = ratio > level and white
-    misfit = ratio > level and not noise_limited
+    # the quantization floor is stationary noise: a residual that comes in bursts (impacts the model does not
+    # follow) is model error above the good-fit level, however coarse the encoder
+    bursts = ratio > APPROXIMATE_FACTOR * good_fit_ratio and stationary > WHITE_STATIONARY
+    misfit = (ratio > level and not noise_limited) or bursts
     # a residual as large as the torque itself (no model leaves that much) or a diverged one: the local
     # curvature says nothing about where the plant is
     determined = bool(ratio < UNDETERMINED_RATIO)
@@ -174,4 +179,5 @@ def assess(fit: PemFit, *, torque_rms_nm: float, motor_samples: int, decimated_r
                       window_rms_p90_over_median=stationary, noise_limited=noise_limited,
                       approximate=bool(reasons), reasons=tuple(reasons), cutoff_hz=cutoff_hz,
                       observer_bandwidth_hz=observer_bandwidth_hz, effective_samples=fit.n_effective,
-                      converged=fit.converged, interval_scale=scale, determined=determined)
+                      converged=fit.converged, interval_scale=scale, model_error=bool(misfit or not determined),
+                      determined=determined)

@@ -354,13 +354,19 @@ def _fit_stage(run: _Run, cell: Any, scan_detail: dict[str, Any]) -> tuple[PemFi
     first = fit(run.problem, p0, cell.epsilon_rad, candidates, slow, coulomb_motor_nm=f_total - f_load,
                 coulomb_load_nm=f_load, lag_s=run.lag_s, **common)
     terms, selection = significant_terms(first, keep_all=opt.term_selection == "keep_all")
-    # the configured observer's gain for the stiffness the first fit found: its loop gain is relative to
-    # K + D·fs, and designed for the start's a fit that moved K several-fold would make it unstable
-    fast = observer(1.0, first.parameters)
+    # the configured observer, designed at the start; its gain removes a fraction α of a twist error per sample
+    # at the start's K + D·fs, α·(K + D·fs)/(K₀ + D₀·fs) at the first fit's: past the whole error (> 1) the
+    # correction overshoots and the predictor diverges, so then it is designed at the first fit's stiffness
+    fast = observer(1.0, p0)
+    at = first.parameters
+    if fast.gain_rad_per_nm * (at.K + at.D * fs) > 1.0:
+        fast = observer(1.0, at)
+    else:
+        at = p0
     # the estimate's sensitivity to how the residual is discretized is part of its uncertainty: the motor
     # position a global spline instead, the observer half as fast
     alternates = ((run.prepared(fc, "spline" if opt.motor_interpolation == "local" else "local"), fast),
-                  (run.problem, observer(0.5, first.parameters)))
+                  (run.problem, observer(0.5, at)))
 
     def refit(p: TwoMassParameters, eps: float, hold: bool) -> PemFit:
         return fit(run.problem, p, eps, terms, fast, alternates=alternates, coulomb_motor_nm=first.coulomb_motor_nm,
@@ -397,15 +403,14 @@ def _fit_stage(run: _Run, cell: Any, scan_detail: dict[str, Any]) -> tuple[PemFi
 
 def _model_error(run: _Run, pem: PemFit, observer: Any) -> bool:
     """The fit leaves model error: more than the approximate level, and not as white noise."""
-    from .assess import APPROXIMATE_FACTOR, assess
+    from .assess import assess
 
     q = assess(pem, torque_rms_nm=run.torque_rms_nm, motor_samples=run.problem.acceleration_f.size,
                decimated_rate_hz=run.fs / run.problem.decimation, good_fit_ratio=run.opt.good_fit_ratio,
                noise_floor_ratio=float(run.cutoff["quantization_floor_ratio"]), cutoff_hz=run.problem.cutoff_hz,
                observer_bandwidth_hz=observer.bandwidth_hz, sample_rate_hz=run.fs,
                resonance_hz=_resonance_hz(pem.parameters))
-    level = APPROXIMATE_FACTOR * max(run.opt.good_fit_ratio, float(run.cutoff["quantization_floor_ratio"]))
-    return q.residual_ratio > level and not q.noise_limited
+    return q.model_error
 
 
 def _stiffer_starts(run: _Run, cell: Any, pem: PemFit, observer: Any) -> tuple[_Run, Any, PemFit, Any, list[dict[str, float]]]:

@@ -57,6 +57,9 @@ class FitQuality:
     converged: bool = True
     """The least squares stopped at a stationary point (its step or cost change below tolerance), not at
     its evaluation limit: only then do the intervals, from the curvature there, describe the estimate."""
+    model_error: bool = False
+    """The residual is model error (dynamics the model does not reproduce), not the record's noise: above
+    the approximate level and not white, or in bursts above the good-fit level."""
     determined: bool = True
     """False when the model explains none of the torque (its residual is at least RMS τ_ref, as much as no
     model at all leaves): the estimates carry no information, and every interval is the whole range the
