@@ -1,0 +1,450 @@
+"""The Kalman predictor of the whole two-mass + dead-zone state: the estimator's prediction errors.
+
+State (per sample, SI units)::
+
+    x = (x_m, v_m, s, v_l [, τ])      s = x_m − x_l (the twist), τ the current loop's output
+
+Between two samples τ_ref is held (the drive's zero-order hold), so each mode of the plant — in
+contact on either side, τ_s = K·(s ∓ ε) + D·ṡ, or in the gap, τ_s = 0 — is a linear system whose
+exact discretization (Φ, Γ) is computed once per parameter set: the predictor needs no interpolated
+motor position and no differentiated encoder, and is exact at any sample rate. A sample whose
+twist changes mode is propagated exactly with the switch located inside it (the modes' eigen
+decompositions, bisection on the twist; interior points catch grazes).
+
+Friction: the motor's Coulomb term F_cm·tanh(v/v_s) takes the measured mean speed of the interval
+(an input, as in an equation-error model); the load's is the set-valued sign at the interval's end
+(backward Euler: the friction never reverses the load within one sample, and holds it when it
+can), the limit of the smooth sign the plant uses.
+
+Noise model (Ljung, *System Identification*, ch. 4): each encoder measures its position with its
+quantization noise, variance step²/12 (the step read from the record); a white torque disturbance
+of standard deviation ``process_noise_nm`` per sample acts on the motor (a share of it on the load). The
+time-varying Kalman filter (covariance propagated through the sample's mode, so that the load's
+uncertainty grows in the gap and is corrected at the next contact) gives one-step prediction
+errors e_k and their variances S_k: at the true parameters and noise levels e_k/√S_k is white with
+unit variance. The prediction errors themselves, e_k/σ_encoder, are the estimator's residual.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+from scipy.linalg import expm
+
+from .twomass import TwoMassParameters
+
+__all__ = ["KalmanProblem", "Innovations", "innovations", "kalman_problem", "position_step_rad"]
+
+
+@dataclass(frozen=True, eq=False)
+class KalmanProblem:
+    """One record as the Kalman predictor reads it; arrays are indexed by sample k = 0 … N−1."""
+
+    sample_rate_hz: float
+    torque_ref: NDArray[np.float64]
+    """Torque reference held over [k·Ts, (k+1)·Ts) [N·m], shape (N,)."""
+    motor_position: NDArray[np.float64]
+    """Motor encoder at k·Ts [rad], shape (N,)."""
+    load_position: NDArray[np.float64] | None
+    """Load encoder at k·Ts [rad], shape (N,); None without one."""
+    motor_friction: NDArray[np.float64]
+    """tanh(v̄/v_s) of the measured mean motor speed over [k·Ts, (k+1)·Ts) [-], shape (N,)."""
+    measurement_noise_rad: NDArray[np.float64]
+    """Standard deviation of each encoder's quantization, step/√12 [rad], shape (outputs,)."""
+    measured: NDArray[np.bool_]
+    """False at samples a streamed link lost (interpolated in the record: no evidence), shape (N,)."""
+    torque_rms_nm: float
+    """RMS of τ_ref [N·m]: the scale of the torque disturbance."""
+    velocity_scale_rad_s: float
+
+    @property
+    def outputs(self) -> int:
+        return 1 if self.load_position is None else 2
+
+
+def position_step_rad(position: NDArray[np.float64]) -> float:
+    """An encoder's step [rad]: the smallest position change in its record (0: it never moved)."""
+    d = np.abs(np.diff(np.asarray(position, dtype=np.float64)))
+    d = d[d > 0]
+    return float(d.min()) if d.size else 0.0
+
+
+def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.float64], sample_rate_hz: float, *,
+                   load_position: NDArray[np.float64] | None = None, velocity_scale_rad_s: float = 2e-3,
+                   lost: NDArray[np.bool_] | None = None) -> KalmanProblem:
+    """The predictor's view of a record (see :class:`KalmanProblem`)."""
+    fs = float(sample_rate_hz)
+    y = np.ascontiguousarray(motor_position, dtype=np.float64)
+    speed = np.diff(y) * fs
+    steps = [position_step_rad(y)] + ([position_step_rad(load_position)] if load_position is not None else [])
+    # a record that never moves by one step has no quantization to speak of: a floor far below any encoder's
+    noise = np.array([max(s, 1e-9) / math.sqrt(12.0) for s in steps])
+    measured = np.ones(y.size, dtype=np.bool_) if lost is None else ~np.asarray(lost, dtype=np.bool_)
+    tau = np.ascontiguousarray(torque_ref, dtype=np.float64)
+    return KalmanProblem(fs, tau, y, None if load_position is None else np.ascontiguousarray(load_position, dtype=np.float64),
+                         np.concatenate((np.tanh(speed / velocity_scale_rad_s), [0.0])), noise,
+                         np.ascontiguousarray(measured), float(np.sqrt(np.mean(tau * tau))), velocity_scale_rad_s)
+
+
+@dataclass(frozen=True, eq=False)
+class Innovations:
+    """The predictor's one-step prediction errors over samples 1 … N−1."""
+
+    error: NDArray[np.float64]
+    """Prediction error over each encoder's noise, e_k/σ [-], shape (N−1, outputs); 0 at lost samples."""
+    normalized: NDArray[np.float64]
+    """e_k/√S_k: unit variance and white at the true parameters and noise levels [-], shape (N−1, outputs)."""
+    log_variance: NDArray[np.float64]
+    """ln(S_k/σ²) [-], shape (N−1, outputs)."""
+    events: int
+    """Contact and separation events located inside samples."""
+
+    def negative_log_likelihood(self) -> float:
+        """Mean of ν² + ln S (Gaussian prediction errors, up to a constant) [-]."""
+        return float(np.mean(self.normalized ** 2 + self.log_variance))
+
+
+# --- the model's matrices ------------------------------------------------------------------------
+def _continuous(p: TwoMassParameters, lag_s: float, contact: bool) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(A, B) of one mode; inputs u = (τ_ref, ±ε (the contact side's offset), F_cm·f_m, F_cl·f_l)."""
+    n = 5 if lag_s > 0 else 4
+    A = np.zeros((n, n))
+    B = np.zeros((n, 4))
+    A[0, 1] = 1.0
+    A[1, 1] = -p.B_m / p.J_m
+    A[2, 1], A[2, 3] = 1.0, -1.0
+    A[3, 3] = -p.B_l / p.J_l
+    if contact:  # τ_s = K·s − K·(±ε) + D·(v_m − v_l)
+        A[1, 1] -= p.D / p.J_m
+        A[1, 2] -= p.K / p.J_m
+        A[1, 3] += p.D / p.J_m
+        A[3, 1] += p.D / p.J_l
+        A[3, 2] += p.K / p.J_l
+        A[3, 3] -= p.D / p.J_l
+        B[1, 1], B[3, 1] = p.K / p.J_m, -p.K / p.J_l
+    if lag_s > 0:
+        A[1, 4] = 1.0 / p.J_m
+        A[4, 4] = -1.0 / lag_s
+        B[4, 0] = 1.0 / lag_s
+    else:
+        B[1, 0] = 1.0 / p.J_m
+    B[1, 2] = -1.0 / p.J_m
+    B[3, 3] = -1.0 / p.J_l
+    return A, B
+
+
+def _discretize(A: NDArray[np.float64], B: NDArray[np.float64], t: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Exact zero-order-hold discretization over t: (e^{At}, ∫₀ᵗ e^{As} ds·B)."""
+    n, m = B.shape
+    M = np.zeros((n + m, n + m))
+    M[:n, :n], M[:n, n:] = A, B
+    E = expm(M * t)
+    return E[:n, :n], E[:n, n:]
+
+
+@dataclass(frozen=True, eq=False)
+class _Model:
+    """Per mode (0: gap, 1: contact): full- and half-sample maps, eigen decomposition, B, process noise."""
+
+    Phi: NDArray[np.float64]
+    Gam: NDArray[np.float64]
+    PhiH: NDArray[np.float64]
+    GamH: NDArray[np.float64]
+    V: NDArray[np.complex128]
+    lam: NDArray[np.complex128]
+    Vi: NDArray[np.complex128]
+    B: NDArray[np.float64]
+    Q: NDArray[np.float64]
+
+
+def _model(p: TwoMassParameters, lag_s: float, Ts: float, process_noise_nm: float, load_share: float) -> _Model | None:
+    mats = [_continuous(p, lag_s, c) for c in (False, True)]
+    n = mats[0][0].shape[0]
+    out = {k: np.empty((2, n, n)) for k in ("Phi", "PhiH", "Q")}
+    out.update(Gam=np.empty((2, n, 4)), GamH=np.empty((2, n, 4)), B=np.empty((2, n, 4)))
+    V = np.empty((2, n, n), dtype=np.complex128)
+    lam = np.empty((2, n), dtype=np.complex128)
+    Vi = np.empty((2, n, n), dtype=np.complex128)
+    for m, (A, B) in enumerate(mats):
+        out["Phi"][m], out["Gam"][m] = _discretize(A, B, Ts)
+        out["PhiH"][m], out["GamH"][m] = _discretize(A, B, 0.5 * Ts)
+        lam[m], V[m] = np.linalg.eig(A)
+        if not np.all(np.isfinite(V[m])) or np.linalg.cond(V[m]) > 1e12:
+            return None  # a defective mode (coincident poles): no parameter set a fit would end at
+        Vi[m] = np.linalg.inv(V[m])
+        out["B"][m] = B
+        # a white torque disturbance held over the sample on the motor (through τ_ref's column: the
+        # current loop filters it as it filters τ_ref), and a share of it on the load (F_cl's column)
+        g_m, g_l = out["Gam"][m][:, 0], out["Gam"][m][:, 3]
+        out["Q"][m] = (np.outer(g_m, g_m) + load_share ** 2 * np.outer(g_l, g_l)) * process_noise_nm ** 2
+    return _Model(V=V, lam=lam, Vi=Vi, **out)
+
+
+# --- compiled core ---------------------------------------------------------------------------------
+#: Relative change of the covariance over a contact interval below which it is taken as steady (its
+#: gains then reused until the mode changes): far below what moves an estimate.
+_STEADY = 1e-12
+#: Points inside a switching sample where the twist is checked for the first crossing.
+_INTERIOR = 4
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _region(s: float, eps: float) -> int:
+    """+1 / −1: in contact on that side; 0: in the gap (no backlash: always in contact)."""
+    if eps <= 0.0 or s > eps:
+        return 1
+    if s < -eps:
+        return -1
+    return 0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _twist_at(V: NDArray[np.complex128], lam: NDArray[np.complex128], z0: NDArray[np.complex128],
+              c: NDArray[np.complex128], t: float) -> float:
+    acc = 0.0
+    for i in range(lam.size):
+        a = lam[i] * t
+        ph = t * (1.0 + 0.5 * a) if abs(a) < 1e-8 else (np.exp(a) - 1.0) / lam[i]
+        acc += (V[2, i] * (np.exp(a) * z0[i] + ph * c[i])).real
+    return acc
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _crossing(V: NDArray[np.complex128], lam: NDArray[np.complex128], z0: NDArray[np.complex128],
+              c: NDArray[np.complex128], b: float, t0: float, g0: float, t1: float, g1: float, reg: int,
+              eps: float) -> float:
+    """The first time in (t0, t1] the twist leaves mode ``reg`` through the boundary b (g = s − b changes
+    sign on the bracket): Illinois regula falsi; the returned time lies in the new mode."""
+    for _ in range(60):
+        if t1 - t0 <= 1e-14 * max(t1, 1e-300):
+            break
+        t = t1 - g1 * (t1 - t0) / (g1 - g0) if g1 != g0 else 0.5 * (t0 + t1)
+        if not t0 < t < t1:
+            t = 0.5 * (t0 + t1)
+        st = _twist_at(V, lam, z0, c, t)
+        g = st - b
+        if _region(st, eps) != reg:
+            t1, g1 = t, g
+            g0 *= 0.5
+        else:
+            t0, g0 = t, g
+            g1 *= 0.5
+    return t1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, Ts: float,
+                    V: NDArray[np.complex128], lam: NDArray[np.complex128], Vi: NDArray[np.complex128],
+                    Bc: NDArray[np.float64]) -> int:
+    """Propagate x over Ts in place, locating each mode switch (x(t) = V·(e^{λt}·z₀ + φ(λ,t)·c));
+    returns the number of switches."""
+    n = x.size
+    t_left = Ts
+    events = 0
+    z0 = np.empty(n, dtype=np.complex128)
+    c = np.empty(n, dtype=np.complex128)
+    for _ in range(16):
+        reg = _region(x[2], eps)
+        m = 0 if reg == 0 else 1
+        u[1] = reg * eps
+        for i in range(n):
+            a0 = 0j
+            a1 = 0j
+            for j in range(n):
+                a0 += Vi[m, i, j] * x[j]
+                bu = 0.0
+                for q in range(4):
+                    bu += Bc[m, j, q] * u[q]
+                a1 += Vi[m, i, j] * bu
+            z0[i] = a0
+            c[i] = a1
+        tc = -1.0
+        t_prev, s_prev = 0.0, x[2]
+        for j in range(1, _INTERIOR + 1):  # interior points catch a graze that leaves the end in the same mode
+            tj = t_left * j / _INTERIOR
+            sj = _twist_at(V[m], lam[m], z0, c, tj)
+            side = _region(sj, eps)
+            if side != reg:
+                # the boundary crossed: ε or −ε (out of the gap toward ``side``, out of contact toward the gap)
+                b = eps * (side if reg == 0 else reg)
+                tc = _crossing(V[m], lam[m], z0, c, b, t_prev, s_prev - b, tj, sj - b, reg, eps)
+                break
+            t_prev, s_prev = tj, sj
+        t = t_left if tc < 0 else tc
+        for i in range(n):
+            acc = 0.0
+            for k in range(n):
+                a = lam[m, k] * t
+                ph = t * (1.0 + 0.5 * a) if abs(a) < 1e-8 else (np.exp(a) - 1.0) / lam[m, k]
+                acc += (V[m, i, k] * (np.exp(a) * z0[k] + ph * c[k])).real
+            x[i] = acc
+        if tc < 0:
+            break
+        events += 1
+        t_left -= tc
+        if t_left <= 1e-12 * Ts:
+            break
+    return events
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.float64], fm: NDArray[np.float64],
+            measured: NDArray[np.bool_], Fcm: float, Fcl: float, eps: float, vs: float, Ts: float,
+            Phi: NDArray[np.float64], Gam: NDArray[np.float64], PhiH: NDArray[np.float64], GamH: NDArray[np.float64],
+            V: NDArray[np.complex128], lam: NDArray[np.complex128], Vi: NDArray[np.complex128],
+            Bc: NDArray[np.float64], Q: NDArray[np.float64], R: NDArray[np.float64], x0: NDArray[np.float64],
+            P0: NDArray[np.float64], e: NDArray[np.float64], S_out: NDArray[np.float64]) -> int:
+    N = y.size
+    n = x0.size
+    nout = e.shape[1]
+    x = x0.copy()
+    P = P0.copy()
+    T = np.empty((n, n))
+    xe = np.empty(n)
+    u = np.zeros(4)
+    g = np.empty(n)
+    P_last = np.zeros((n, n))
+    G_st = np.zeros((nout, n))
+    S_st = np.ones(nout)
+    steady = False
+    events = 0
+    for k in range(N - 1):
+        reg = _region(x[2], eps)
+        m = 0 if reg == 0 else 1
+        u[0] = tau[k]
+        u[1] = reg * eps
+        u[2] = Fcm * fm[k]
+        u[3] = 0.0
+        for i in range(n):
+            a = 0.0
+            for j in range(n):
+                a += Phi[m, i, j] * x[j]
+            for q in range(3):
+                a += Gam[m, i, q] * u[q]
+            xe[i] = a
+        if Fcl > 0.0:
+            # load friction: the set-valued sign at the interval's end velocity
+            f = xe[3] / (-Gam[m, 3, 3] * Fcl)
+            f = min(max(f, -1.0), 1.0)
+            u[3] = Fcl * f
+            for i in range(n):
+                xe[i] += Gam[m, i, 3] * u[3]
+        switch = False
+        if eps > 0.0:
+            switch = _region(xe[2], eps) != reg
+            # a graze (out of the mode and back within the sample) is possible only near a boundary
+            reach = 2.0 * Ts * (abs(x[1] - x[3]) + abs(xe[1] - xe[3]))
+            near = min(abs(abs(x[2]) - eps), abs(abs(xe[2]) - eps)) < reach
+            if not switch and near:
+                xh2 = 0.0
+                for j in range(n):
+                    xh2 += PhiH[m, 2, j] * x[j]
+                for q in range(4):
+                    xh2 += GamH[m, 2, q] * u[q]
+                switch = _region(xh2, eps) != reg
+        if switch:
+            for i in range(n):
+                xe[i] = x[i]
+            # (the load friction as the interval's plain prediction set it: continuous across the switch)
+            events += _switching_step(xe, u, eps, Ts, V, lam, Vi, Bc)
+        for i in range(n):
+            x[i] = xe[i]
+        if steady and m == 1 and not switch and measured[k + 1]:
+            # in contact, the covariance has reached its steady state: the stored gains
+            for o in range(nout):
+                innov = y[k + 1] - x[0] if o == 0 else yl[k + 1] - (x[0] - x[2])
+                e[k, o] = innov
+                S_out[k, o] = S_st[o]
+                for i in range(n):
+                    x[i] += G_st[o, i] * innov
+            continue
+        # P ← Φ P Φᵀ + Q in the interval's starting mode
+        for i in range(n):
+            for j in range(n):
+                acc = 0.0
+                for l in range(n):
+                    acc += Phi[m, i, l] * P[l, j]
+                T[i, j] = acc
+        for i in range(n):
+            for j in range(i, n):
+                acc = Q[m, i, j]
+                for l in range(n):
+                    acc += T[i, l] * Phi[m, j, l]
+                P[i, j] = acc
+                P[j, i] = acc
+        if not measured[k + 1]:
+            steady = False
+            for o in range(nout):
+                e[k, o] = 0.0
+                S_out[k, o] = R[o]
+            continue
+        for o in range(nout):  # sequential scalar updates (independent encoders)
+            if o == 0:
+                innov = y[k + 1] - x[0]
+                for i in range(n):
+                    g[i] = P[i, 0]
+                S = R[0] + g[0]
+            else:
+                innov = yl[k + 1] - (x[0] - x[2])
+                for i in range(n):
+                    g[i] = P[i, 0] - P[i, 2]
+                S = R[1] + g[0] - g[2]
+            e[k, o] = innov
+            S_out[k, o] = S
+            S_st[o] = S
+            for i in range(n):
+                G_st[o, i] = g[i] / S
+                x[i] += g[i] / S * innov
+            for i in range(n):
+                for j in range(n):
+                    P[i, j] -= g[i] * g[j] / S
+        # steady once a contact interval leaves the covariance where the last one did (to ~1e-12)
+        change = 0.0
+        size = 0.0
+        for i in range(n):
+            for j in range(n):
+                change = max(change, abs(P[i, j] - P_last[i, j]))
+                size = max(size, abs(P[i, j]))
+                P_last[i, j] = P[i, j]
+        steady = m == 1 and not switch and change <= _STEADY * size
+    return events
+
+
+def innovations(problem: KalmanProblem, params: TwoMassParameters, epsilon_rad: float, *,
+                coulomb_motor_nm: float = 0.0, coulomb_load_nm: float = 0.0, lag_s: float = 0.0,
+                process_noise_nm: float, load_share: float = 0.0) -> Innovations | None:
+    """The Kalman predictor's prediction errors at these parameters (None: the model has a defective
+    mode, where no eigen decomposition describes it).
+
+    :param process_noise_nm: standard deviation of the torque disturbance on the motor, per sample [N·m].
+    :param load_share: the load's disturbance as a share of it (0: a drive's torque noise alone; more
+        lets the predictor follow a load the model does not quite reproduce) [-].
+    """
+    pr = problem
+    Ts = 1.0 / pr.sample_rate_hz
+    model = _model(params, lag_s, Ts, process_noise_nm, load_share)
+    if model is None:
+        return None
+    n = model.Phi.shape[1]
+    R = pr.measurement_noise_rad ** 2
+    x0 = np.zeros(n)
+    x0[0] = pr.motor_position[0]
+    P0 = np.zeros((n, n))
+    P0[0, 0] = R[0]
+    # the record starts at rest, the twist anywhere in the gap (measured with a load encoder)
+    P0[2, 2] = epsilon_rad ** 2 + R[0]
+    yl = np.zeros(0) if pr.load_position is None else pr.load_position
+    if pr.load_position is not None:
+        x0[2] = pr.motor_position[0] - pr.load_position[0]
+        P0[2, 2] = R[0] + R[1]
+    e = np.zeros((pr.motor_position.size - 1, pr.outputs))
+    S = np.ones_like(e)
+    events = _filter(pr.torque_ref, pr.motor_position, yl, pr.motor_friction, pr.measured, float(coulomb_motor_nm),
+                     float(coulomb_load_nm), float(epsilon_rad), pr.velocity_scale_rad_s, Ts, model.Phi, model.Gam,
+                     model.PhiH, model.GamH, model.V, model.lam, model.Vi, model.B, model.Q, R, x0, P0, e, S)
+    S = S / R[None, :]
+    return Innovations(error=e / np.sqrt(R)[None, :], normalized=e / np.sqrt(R)[None, :] / np.sqrt(S),
+                       log_variance=np.log(S), events=int(events))
