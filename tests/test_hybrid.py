@@ -94,7 +94,7 @@ def test_iterations_show_step5_getting_better() -> None:
     assert len(res.iterations) == 2  # the frequency-domain start with the scan's ε, the result
     assert res.iterations[1]["frd_error"] < res.iterations[0]["frd_error"]
     assert res.iterations[1]["frd_error"] < 0.01
-    assert [s.name for s in res.stages] == ["start", "scan", "fit", "check"]
+    assert [s.name for s in res.stages] == ["start", "scan", "fit", "kalman", "check"]
     assert all(s.seconds >= 0 for s in res.stages)
 
 
@@ -111,7 +111,8 @@ def test_result_json_has_exactly_the_documented_keys() -> None:
     assert d["source"] == {"file": "run.mcap", "sample_rate_hz": FS, "samples": 80000}
     assert set(d["fit"]) == {"residual_ratio", "noise_floor_ratio", "spectral_flatness", "window_rms_p90_over_median",
                              "noise_limited", "approximate", "reasons", "cutoff_hz", "observer_bandwidth_hz",
-                             "effective_samples", "converged", "interval_scale", "determined", "model_error"}
+                             "effective_samples", "converged", "interval_scale", "determined", "model_error",
+                             "innovation_rms", "process_noise_ratio"}
     assert set(d["two_mass_interval"]) == set(d["two_mass"]) == set(d["two_mass_relative_stderr"])
     lo, hi = d["measured_band_hz"]
     assert 0 < lo < 1.0 and 300.0 < hi <= 420.0  # the chirp's 0.1–400 Hz, to the bins' edge

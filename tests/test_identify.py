@@ -139,11 +139,13 @@ def test_a_current_loop_is_kept_with_its_bandwidth() -> None:
     assert "friction" not in res.to_dict()
 
 
-def test_a_coarse_motor_encoder_lowers_the_residual_low_pass() -> None:
+def test_a_coarse_motor_encoder_is_the_predictors_measurement_noise() -> None:
+    # 17 bits: the quantization (step²/12) is what the Kalman predictor expects of the encoder, so its
+    # normalized prediction errors stay white with unit variance and nothing is flagged
     res = _identified("coarse_encoder")
-    assert res.fit is not None and res.fit.cutoff_hz < 200.0  # 17 bits: the low-pass came down from 400 Hz
-    assert any("encoder's step" in n for n in res.notes)
-    assert _identified("reference").fit.cutoff_hz == 400.0  # type: ignore[union-attr]
+    assert res.fit is not None and not res.fit.approximate, res.fit.reasons
+    assert res.fit.innovation_rms is not None and 0.8 < res.fit.innovation_rms < 1.3
+    assert res.fit.noise_limited
 
 
 @pytest.mark.parametrize("name", ["wide_backlash", "stiff_light_200hz", "chaotic_300hz"])
@@ -195,25 +197,33 @@ def test_the_answer_does_not_depend_on_the_thread_count_or_on_perturbations_far_
         assert getattr(moved.parameters, p) == pytest.approx(getattr(base.parameters, p), rel=1e-4), p
 
 
-def test_a_fit_that_explains_none_of_the_torque_claims_no_precision() -> None:
-    # the fit's curvature at a point where the residual is as large as the torque itself says nothing
-    # about where the plant is: the intervals are then the whole range, never a tight one around noise
+def test_a_fit_that_explains_nothing_claims_no_precision() -> None:
+    # the curvature at a point where the predictions miss by 100× their predicted size says nothing
+    # about where the plant is: the intervals are then unbounded, never a tight one around noise
     from commission.ident.assess import assess
-    from commission.ident.estimator import PemFit, ModelTerms
+    from commission.ident.estimator import ModelTerms, PemFit
+    from commission.ident.kalman import Innovations
 
     rng = np.random.default_rng(1)
-    residual = rng.standard_normal(4000)
     names = ("ln J_m", "ln J_l", "ln B_m", "ln B_l", "ln K", "ln D", "eps_deg")
-    pem = PemFit(parameters=REFERENCE_PLANT, epsilon_rad=math.radians(0.4), coulomb_motor_nm=0.0,
-                 coulomb_load_nm=0.0, lag_s=0.0, terms=ModelTerms(), residual=residual, cost_nm=1.0, names=names,
-                 covariance=np.eye(7) * 1e-10, n_effective=4000.0, evaluations=10, converged=True, message="")
-    kw = dict(motor_samples=4008, decimated_rate_hz=800.0, good_fit_ratio=0.005, noise_floor_ratio=0.001,
-              cutoff_hz=400.0, observer_bandwidth_hz=400.0, sample_rate_hz=8000.0, resonance_hz=65.0)
-    lost = assess(pem, torque_rms_nm=0.5, **kw)  # residual RMS 1 N·m, twice the torque's
+
+    def fit_with(size: float, disturbance_nm: float = 1e-4) -> PemFit:
+        nu = size * rng.standard_normal((4000, 1))
+        inn = Innovations(error=nu, normalized=nu, log_variance=np.zeros_like(nu), events=0)
+        return PemFit(parameters=REFERENCE_PLANT, epsilon_rad=math.radians(0.4), coulomb_motor_nm=0.0,
+                      coulomb_load_nm=0.0, lag_s=0.0, terms=ModelTerms(), residual=nu[:, 0], cost_nm=size,
+                      names=names, covariance=np.eye(7) * 1e-10, n_effective=4000.0, evaluations=10,
+                      converged=True, message="", process_noise_nm=disturbance_nm, innovations=inn)
+
+    lost = assess(fit_with(300.0), torque_rms_nm=0.1, sample_rate_hz=8000.0)
     assert not lost.determined and lost.approximate
-    assert any("unexplained" in r and "unbounded" in r for r in lost.reasons)
-    fine = assess(pem, torque_rms_nm=400.0, **kw)  # the same residual, 0.25 % of the torque
-    assert fine.determined
+    assert any("unbounded" in r for r in lost.reasons)
+    fine = assess(fit_with(1.0), torque_rms_nm=0.1, sample_rate_hz=8000.0)
+    assert fine.determined and not fine.approximate and fine.noise_limited
+    # errors that look like noise only because the noise model took a tenth of the torque as disturbance
+    absorbed = assess(fit_with(1.0, disturbance_nm=0.02), torque_rms_nm=0.1, sample_rate_hz=8000.0)
+    assert absorbed.approximate and absorbed.model_error
+    assert any("unexplained" in r for r in absorbed.reasons)
 
 
 def test_a_load_encoder_gives_the_start_where_the_gap_pulls_the_frequency_response_low() -> None:

@@ -1,29 +1,19 @@
-"""Assessment of a fit: how much of the record it explains, whether what it leaves is noise, and
-whether its intervals are tight enough to act on (:class:`commission.ident.result.FitQuality`).
+"""Assessment of the estimate: whether the model and its noise model explain the record, and whether
+the intervals are tight enough to act on (:class:`commission.ident.result.FitQuality`).
 
-A result is *approximate* when
+The Kalman predictor's normalized prediction errors e/√S are white with unit variance when the
+model and its noise model describe the record. A result is *approximate* when
 
-* the model explains none of the torque (its residual at least RMS τ_ref, ``UNDETERMINED_RATIO``):
-  nothing is determined, and every interval is the whole range the fit searched; or
-* the model leaves more than ``APPROXIMATE_FACTOR`` × max(good-fit level, quantization floor) of
-  the torque unexplained and that residual is not white, stationary noise, or more than
-  ``APPROXIMATE_FACTOR`` × the good-fit level in bursts (the quantization floor is stationary) — the
-  axis has dynamics the model does not reproduce, and the parameters may be biased beyond their
-  intervals; or
-* the drive samples fewer than ``SAMPLES_PER_RESONANCE`` times per resonance period; or
-* the least squares stopped at its evaluation limit, not at a stationary point: the intervals, from
-  the curvature there, do not describe the estimate; or
-* its 95 % interval is wider than what commissioning needs: ε to ``EPSILON_TOLERANCE_DEG`` or
+* they miss by more than ``INNOVATION_MISFIT`` × their predicted size (``INNOVATION_UNDETERMINED``:
+  nothing is determined, every interval unbounded); or
+* the noise model needs a torque disturbance of ``DISTURBANCE_MISFIT`` of RMS τ_ref or more to follow
+  the record: it then stands in for dynamics the model lacks, and the errors look like noise; or
+* the least squares stopped at its evaluation limit, not at a stationary point; or
+* a 95 % interval is wider than commissioning needs: ε to ``EPSILON_TOLERANCE_DEG`` or
   ``RELATIVE_TOLERANCE`` of itself, J_m, J_l and K to ``RELATIVE_TOLERANCE``, the resonance and
-  anti-resonance frequencies to ``MODE_TOLERANCE`` — the record does not
-  determine them (a short or noisy record, a backlash the excitation barely opens).
+  anti-resonance frequencies to ``MODE_TOLERANCE``.
 
-Intervals. The estimator's covariance describes the noise's effect on the estimate, not a model
-error's: when the residual exceeds its noise — the good-fit level, the quantization floor, or its
-own white, stationary part (:func:`noise_part`; not where the first rule above found the residual
-to be model error), whichever is largest — every interval is widened by that ratio (the Birge
-ratio, ``FitQuality.interval_scale``) before it is reported and checked.
-
+Where the errors are model error, every interval is widened by their size (``FitQuality.interval_scale``).
 An approximate result is still a result: result.json and the report are written and say why.
 """
 
@@ -37,26 +27,19 @@ from numpy.typing import NDArray
 from scipy.signal import welch
 
 from ..exceptions import IdentificationError
-from .estimator import EDGE_SAMPLES, PARAMETER_NAMES, PemFit
+from .estimator import PARAMETER_NAMES, PemFit
 from .result import FitQuality
 from .twomass import TwoMassParameters, modes
 
-__all__ = ["assess", "mode_stderr", "noise_part", "whiteness"]
+__all__ = ["assess", "mode_stderr", "whiteness"]
 
 #: Step of the central differences in the log-parameters behind :func:`mode_stderr`.
 _MODE_STEP = 1e-5
 
-APPROXIMATE_FACTOR = 5.0
-#: Residual / RMS τ_ref at and above which nothing is determined: τ_ref's own RMS is what a model
-#: predicting no motion at all leaves.
-UNDETERMINED_RATIO = 1.0
-#: Spectral flatness and window-RMS stationarity of a residual that is white torque noise.
+#: Spectral flatness and window-RMS stationarity of prediction errors that are white noise (reported,
+#: ``FitQuality.noise_limited``).
 WHITE_FLATNESS = 0.95
 WHITE_STATIONARY = 1.3
-#: Below this many samples per resonance period the motor's motion between samples, which the load
-#: simulation interpolates, limits K and J_l to several percent (bench/bench_family.py: no member
-#: under 22 was within the tolerances).
-SAMPLES_PER_RESONANCE = 25.0
 #: What commissioning needs of the result (the tolerances of bench/bench_family.py).
 EPSILON_TOLERANCE_DEG = 0.01
 RELATIVE_TOLERANCE = 0.02
@@ -77,19 +60,6 @@ def whiteness(v: NDArray[np.float64], rate_hz: float) -> tuple[float, float]:
     w = np.array([np.sqrt(np.mean(x * x)) for x in np.array_split(v, 50) if x.size])
     med = float(np.median(w))
     return flat, (float(np.percentile(w, 90)) / med if med > 0 else math.inf)
-
-
-def noise_part(v: NDArray[np.float64], rate_hz: float) -> float:
-    """RMS of the white, stationary noise in a residual sampled at ``rate_hz`` [its unit]: its RMS if
-    its spectrum were flat at its median level (narrow-band structure lifts the mean, not the median),
-    and at most its median window RMS (bursts lift the mean, not the median) — windows and band as
-    :func:`whiteness`."""
-    f, P = welch(v, fs=rate_hz, nperseg=min(256, v.size))
-    band = (f > 5.0) & (f < 0.4 * rate_hz) & (P > 0)
-    rms = float(np.sqrt(np.mean(v * v)))
-    flat_rms = rms * math.sqrt(float(np.median(P[band]) / np.mean(P[band]))) if band.any() else 0.0
-    w = np.array([np.sqrt(np.mean(x * x)) for x in np.array_split(v, 50) if x.size])
-    return min(flat_rms, float(np.median(w)))
 
 
 def mode_stderr(fit: PemFit) -> dict[str, float]:
@@ -116,52 +86,9 @@ def mode_stderr(fit: PemFit) -> dict[str, float]:
     return {"resonance": float(np.sqrt(max(var[0], 0.0))), "anti-resonance": float(np.sqrt(max(var[1], 0.0)))}
 
 
-def assess(fit: PemFit, *, torque_rms_nm: float, motor_samples: int, decimated_rate_hz: float,
-           good_fit_ratio: float, noise_floor_ratio: float, cutoff_hz: float,
-           observer_bandwidth_hz: float, sample_rate_hz: float, resonance_hz: float) -> FitQuality:
-    """The fit's quality (see the module docstring).
-
-    :param motor_samples: length of the residual's motor block (before edge trimming).
-    """
-    motor = fit.residual[:motor_samples - 2 * EDGE_SAMPLES]
-    ratio = float(np.sqrt(np.mean(motor * motor))) / max(torque_rms_nm, 1e-300)
-    flat, stationary = whiteness(motor, decimated_rate_hz)
-    level = APPROXIMATE_FACTOR * max(good_fit_ratio, noise_floor_ratio)
-    white = flat >= WHITE_FLATNESS and stationary <= WHITE_STATIONARY
-    noise_limited = ratio > level and white
-    # the quantization floor is stationary noise: a residual that comes in bursts (impacts the model does not
-    # follow) is model error above the good-fit level, however coarse the encoder
-    bursts = ratio > APPROXIMATE_FACTOR * good_fit_ratio and stationary > WHITE_STATIONARY
-    misfit = (ratio > level and not noise_limited) or bursts
-    # a residual as large as the torque itself (no model leaves that much) or a diverged one: the local
-    # curvature says nothing about where the plant is
-    determined = bool(ratio < UNDETERMINED_RATIO)
-    # the Birge ratio: what the model leaves beyond its noise is model error, whose effect on the estimate
-    # the residual's statistics cannot show; the noise is the known floors, and, unless the residual was
-    # just found to be model error, its own white, stationary part
-    noise = max(good_fit_ratio, noise_floor_ratio)
-    if not misfit:
-        noise = max(noise, noise_part(motor, decimated_rate_hz) / max(torque_rms_nm, 1e-300))
-    scale = max(1.0, ratio / noise)
-    if scale > 1.0:
-        fit = replace(fit, covariance=fit.covariance * scale ** 2)
+def _interval_reasons(fit: PemFit) -> list[str]:
+    """Why the record determines the estimate too loosely for commissioning (empty: it does not)."""
     reasons: list[str] = []
-    if not determined:
-        reasons.append(f"the model leaves {100 * ratio:.0f} % of the torque unexplained, as much as no model at "
-                       "all: the record does not determine the parameters or ε under this model; their intervals "
-                       "are unbounded, ε's the whole range the fit searched")
-    elif misfit:
-        reasons.append(f"the model leaves {100 * ratio:.2f} % of the torque unexplained "
-                       f"({ratio / max(good_fit_ratio, noise_floor_ratio):.0f}× what a model that describes the "
-                       "axis leaves), and not as white noise: the axis has dynamics the model does not reproduce; "
-                       "the parameters may be off by more than their intervals")
-    if sample_rate_hz < SAMPLES_PER_RESONANCE * resonance_hz:
-        reasons.append(f"the drive samples only {sample_rate_hz / resonance_hz:.0f}× per resonance period "
-                       f"({resonance_hz:.0f} Hz at {sample_rate_hz:g} Hz): the motor's motion between samples is "
-                       "interpolated, and K and J_l may be off by several percent")
-    if not fit.converged:
-        reasons.append("the least squares stopped at its evaluation limit before converging: the parameters "
-                       "may not be at the fit's optimum, and the intervals (from the curvature there) may not hold")
     eps_deg = math.degrees(fit.epsilon_rad)
     half = 1.96 * fit.stderr("eps_deg")
     if not half <= max(EPSILON_TOLERANCE_DEG, RELATIVE_TOLERANCE * eps_deg):
@@ -175,9 +102,55 @@ def assess(fit: PemFit, *, torque_rms_nm: float, motor_samples: int, decimated_r
     if wide_modes:
         reasons.append("the record determines " + ", ".join(
             f"the {k} frequency only to ±{100 * mode_half[k]:.2g} %" for k in wide_modes) + " (95 %)")
-    return FitQuality(residual_ratio=ratio, noise_floor_ratio=noise_floor_ratio, spectral_flatness=flat,
-                      window_rms_p90_over_median=stationary, noise_limited=noise_limited,
-                      approximate=bool(reasons), reasons=tuple(reasons), cutoff_hz=cutoff_hz,
-                      observer_bandwidth_hz=observer_bandwidth_hz, effective_samples=fit.n_effective,
-                      converged=fit.converged, interval_scale=scale, model_error=bool(misfit or not determined),
-                      determined=determined)
+    return reasons
+
+
+#: RMS of the Kalman predictor's normalized prediction errors e/√S above which the model does not
+#: describe the record: at the true parameters and noise levels it is 1.
+INNOVATION_MISFIT = 1.5
+#: ... and at and above which the estimate is not determined at all.
+INNOVATION_UNDETERMINED = 100.0
+#: Torque disturbance per sample (relative to RMS τ_ref) at and above which the noise model stands in
+#: for dynamics the model lacks: the predictor then follows the record whatever the parameters, and
+#: its prediction errors look like noise (a drive's torque noise is a fraction of this). Whiteness is
+#: no test here: correct fits of friction-rich records leave non-white errors, wrong ones white.
+DISTURBANCE_MISFIT = 0.09
+
+
+def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float) -> FitQuality:
+    """The quality of the estimate (:func:`commission.ident.estimator.kalman_fit`; see the module docstring)."""
+    inn = fit.innovations
+    assert inn is not None
+    nu = inn.normalized[:, 0]
+    level = float(np.sqrt(np.mean(inn.normalized ** 2)))
+    flat, stationary = whiteness(nu, sample_rate_hz)
+    white = flat >= WHITE_FLATNESS and stationary <= WHITE_STATIONARY
+    determined = level < INNOVATION_UNDETERMINED
+    disturbance = fit.process_noise_nm / max(torque_rms_nm, 1e-300)
+    absorbed = disturbance >= DISTURBANCE_MISFIT
+    misfit = level > INNOVATION_MISFIT or absorbed
+    scale = max(1.0, level) if misfit else 1.0
+    if scale > 1.0:
+        fit = replace(fit, covariance=fit.covariance * scale ** 2)
+    reasons: list[str] = []
+    if not determined:
+        reasons.append(f"the model's one-step predictions miss by {level:.0f}× what the noise explains: the record "
+                       "does not determine the parameters or ε under this model; their intervals are unbounded")
+    elif absorbed:
+        reasons.append(f"the model follows the record only with a torque disturbance of {100 * disturbance:.2g} % of "
+                       "RMS τ_ref per sample, far more than a drive's noise: the rest is torque the model leaves "
+                       "unexplained, and the parameters may be off by more than their intervals")
+    elif misfit:
+        reasons.append(f"the model's one-step predictions miss by {level:.2g}× what the encoders' and the torque's "
+                       "noise explain" + ("" if white else ", and not as white noise") + ": torque the model leaves unexplained, "
+                       "dynamics it does not reproduce; the parameters may be off by more than their intervals")
+    if not fit.converged:
+        reasons.append("the least squares stopped at its evaluation limit before converging: the parameters "
+                       "may not be at the fit's optimum, and the intervals (from the curvature there) may not hold")
+    reasons += _interval_reasons(fit)
+    return FitQuality(residual_ratio=disturbance * max(1.0, level), noise_floor_ratio=0.0, spectral_flatness=flat,
+                      window_rms_p90_over_median=stationary, noise_limited=bool(white and not misfit),
+                      approximate=bool(reasons), reasons=tuple(reasons), cutoff_hz=0.5 * sample_rate_hz,
+                      observer_bandwidth_hz=0.0, effective_samples=fit.n_effective, converged=fit.converged,
+                      interval_scale=scale, model_error=bool(misfit or not determined), determined=determined,
+                      innovation_rms=level, process_noise_ratio=disturbance)

@@ -1,32 +1,34 @@
-"""The estimator: prediction-error least squares of every parameter on the observed torque residual.
+"""The estimators: prediction-error least squares of every parameter.
 
-One objective: the low-passed, decimated motor-equation residual of
-:func:`commission.ident.residual.residual_vector` with the load-state observer (a fixed-gain
-predictor, :class:`commission.ident.residual.Observer`), minimised by
+:func:`kalman_fit` — **the estimate**. The one-step prediction errors of the Kalman predictor of the
+whole state (:mod:`commission.ident.kalman`: exact per-mode discretization, located contact events,
+noise model from the encoders' quantization and an estimated torque disturbance), minimised by
 ``scipy.optimize.least_squares`` (trf, bounds) over
 
     ln J_m, ln J_l, ln B_m, ln B_l, ln K, ln D, ε [deg]   and the kept terms   F_cm, F_cl [N·m], T_c [µs]
 
-from one start cell of the scan: first with ε held at the cell's (the linear parameters move to
-where that ε explains the record), then everything. Finite-difference columns run on threads (the
-compiled simulation releases the GIL); each column is computed alone, so the result does not
-depend on the number of threads. No accept/reject rule chooses between paths: the answer is a
-smooth function of the data.
+:func:`fit` — its start: the low-passed, decimated motor-equation residual of
+:func:`commission.ident.residual.residual_vector` with a fixed-gain load-state observer, from one
+cell of the scan (first with ε held at the cell's, then everything); its Wald statistics select the
+optional terms (:func:`significant_terms`).
 
-Optional terms (:class:`ModelTerms`): motor Coulomb friction F_cm·tanh(ẋ_m/v_s) in the motor
-equation; load Coulomb friction F_cl·tanh(ẋ_l/v_s) in the load simulation; a first-order current
-loop T_c·τ̇ = τ_ref − τ. A term is kept when its Wald statistic (value/σ)² exceeds ln n_eff (the
-BIC's price of a parameter, :func:`significant_terms`).
+Finite-difference columns run on threads (the compiled kernels release the GIL); each column is
+computed alone, so the result does not depend on the number of threads. No accept/reject rule
+chooses between paths: the answer is a smooth function of the data.
 
-Uncertainty. The Newey–West (HAC) covariance at the optimum: the residual of a model that is not
-exact is correlated with itself and with the Jacobian, which s²·(JᵀJ)⁻¹ ignores. n_eff, the
-residual's independent samples from its autocorrelation, prices a term in the selection.
+Optional terms (:class:`ModelTerms`): motor Coulomb friction F_cm·tanh(ẋ_m/v_s); load Coulomb
+friction F_cl·tanh(ẋ_l/v_s); a first-order current loop T_c·τ̇ = τ_ref − τ. A term is kept when its
+Wald statistic (value/σ)² exceeds ln n_eff (the BIC's price of a parameter).
+
+Uncertainty. The Newey–West (HAC) covariance at the optimum: prediction errors that are not quite
+white (a coarse encoder's quantization at low speed, model error) are correlated with themselves and
+with the Jacobian, which s²·(JᵀJ)⁻¹ ignores.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -35,10 +37,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
+from .kalman import Innovations, KalmanProblem, innovations
 from .residual import Observer, ResidualProblem, motor_part, simulate_load
 from .twomass import TwoMassParameters
 
-__all__ = ["ModelTerms", "PemFit", "fit", "significant_terms"]
+__all__ = ["ModelTerms", "PemFit", "fit", "kalman_fit", "significant_terms"]
 
 PARAMETER_NAMES = ("J_m", "J_l", "B_m", "B_l", "K", "D")
 #: Decimated residual samples left out at each end: the zero-phase low-pass's edge transients.
@@ -100,9 +103,15 @@ class PemFit:
     message: str
     selection: dict[str, dict[str, float | bool]] = field(default_factory=dict)
     """Per candidate term: its Wald z², the threshold ln n_eff, kept."""
-    discretization: dict[str, float] = field(default_factory=dict)
-    """Per coordinate: how far the estimate moves under the alternate discretizations (in
-    ``covariance`` already)."""
+    process_noise_nm: float = 0.0
+    """Kalman fit: the torque disturbance per sample its predictor assumes, chosen by likelihood [N·m]
+    (0: the torque-residual fit)."""
+    load_share: float = 0.0
+    """Kalman fit: the share of that disturbance on the load, chosen with it [-]."""
+    innovations: Innovations | None = None
+    """Kalman fit: the predictor's prediction errors at the optimum."""
+    epsilon_profile_deg: tuple[float, float] | None = None
+    """Kalman fit: ε's 95 % likelihood-ratio interval on its closing profile [deg] (None: ε at 0)."""
 
     def stderr(self, name: str) -> float:
         """Standard error of a coordinate (NaN when not in the fit)."""
@@ -171,7 +180,7 @@ class _Objective:
 
 def _least_squares(obj: _Objective, z0: NDArray[np.float64], free: NDArray[np.bool_], lo: NDArray[np.float64],
                    hi: NDArray[np.float64], scale: NDArray[np.float64], steps: NDArray[np.float64],
-                   pool: ThreadPoolExecutor, max_nfev: int) -> tuple[NDArray[np.float64], object]:
+                   pool: ThreadPoolExecutor, max_nfev: int, tol: float = 1e-8) -> tuple[NDArray[np.float64], object]:
     """least_squares over the ``free`` coordinates of ``z0`` (the others held)."""
     idx = np.flatnonzero(free)
     last: dict[bytes, NDArray[np.float64]] = {}
@@ -202,7 +211,7 @@ def _least_squares(obj: _Objective, z0: NDArray[np.float64], free: NDArray[np.bo
         return np.stack(list(pool.map(column, range(y.size))), axis=1)
 
     res = least_squares(fun, np.clip(z0[idx], lo[idx], hi[idx]), jac=jac, bounds=(lo[idx], hi[idx]),
-                        method="trf", x_scale=scale[idx], max_nfev=max_nfev, ftol=1e-8, xtol=1e-8)
+                        method="trf", x_scale=scale[idx], max_nfev=max_nfev, ftol=tol, xtol=tol)
     return full(res.x), res
 
 
@@ -237,17 +246,13 @@ def fit(problem: ResidualProblem, start: TwoMassParameters, epsilon_rad: float, 
         observer: Observer, *, coulomb_motor_nm: float = 0.0, coulomb_load_nm: float = 0.0, lag_s: float = 0.0,
         epsilon_max_rad: float,
         load_weight_nm_per_rad: float = 0.0, threads: int = 2, max_nfev: int = 40,
-        hold_epsilon: bool = True, alternates: Sequence[tuple[ResidualProblem, Observer]] = ()) -> PemFit:
+        hold_epsilon: bool = True) -> PemFit:
     """Least squares of every parameter from ``start`` and ``epsilon_rad`` (see the module docstring).
 
     :param coulomb_motor_nm: start of F_cm [N·m]; ``coulomb_load_nm``: of F_cl [N·m].
     :param lag_s: start of T_c [s].
     :param epsilon_max_rad: upper bound of ε [rad].
     :param hold_epsilon: first fit the others with ε held (a start from a scan cell).
-    :param alternates: other discretizations of the same residual (another motor interpolation,
-        another observer bandwidth; the same samples): the Gauss–Newton step each would take from
-        the optimum is the estimate's sensitivity to how the model is discretized, added to its
-        covariance as a systematic error (:attr:`PemFit.discretization`).
     """
     obj = _Objective(problem, observer, terms, load_weight_nm_per_rad)
     ref = float(np.sqrt(np.mean(problem.torque_f ** 2)))
@@ -281,30 +286,23 @@ def fit(problem: ResidualProblem, start: TwoMassParameters, epsilon_rad: float, 
             z, _ = _least_squares(obj, z, held, lo_a, hi_a, scale_a, steps_a, pool, _HELD_EPSILON_NFEV)
         z, res = _least_squares(obj, z, np.ones(z.size, dtype=bool), lo_a, hi_a, scale_a, steps_a, pool, max_nfev)
     r = np.asarray(res.fun)  # type: ignore[attr-defined]
-    J = np.asarray(res.jac)  # type: ignore[attr-defined]
-    n, k = r.size, z.size
-    n_eff = _n_effective(r[:problem.acceleration_f.size - 2 * EDGE_SAMPLES])
+    return _result(obj, z, res, _n_effective(r[:problem.acceleration_f.size - 2 * EDGE_SAMPLES]), obj.calls)
+
+
+def _result(obj: _Objective, z: NDArray[np.float64], res: Any, n_effective: float, evaluations: int,
+            **fields: Any) -> PemFit:
+    """The :class:`PemFit` of a least squares' optimum ``z`` (its Newey–West covariance from ``res``)."""
+    r, J = np.asarray(res.fun), np.asarray(res.jac)
     try:
         cov = _covariance(J, r)
-        Jp = np.linalg.pinv(J)
     except np.linalg.LinAlgError:
-        cov, Jp = np.full((k, k), math.nan), None
-    shifts = []
-    for alt_problem, alt_observer in alternates:
-        alt = _Objective(alt_problem, alt_observer, terms, load_weight_nm_per_rad)
-        alt.bad = obj.bad
-        ra = alt(z)
-        if Jp is not None and ra.shape == r.shape and np.all(np.isfinite(ra)):
-            shifts.append(-(Jp @ (ra - r)))
-    for d in shifts:
-        cov = cov + np.outer(d, d)
+        cov = np.full((z.size, z.size), math.nan)
     p, eps, extra = obj.unpack(z)
     return PemFit(parameters=p, epsilon_rad=eps, coulomb_motor_nm=extra.get("F_cm", 0.0),
-                  coulomb_load_nm=extra.get("F_cl", 0.0), lag_s=1e-6 * extra.get("T_c_us", 0.0), terms=terms,
+                  coulomb_load_nm=extra.get("F_cl", 0.0), lag_s=1e-6 * extra.get("T_c_us", 0.0), terms=obj.terms,
                   residual=r, cost_nm=float(np.sqrt(np.mean(r * r))), names=obj.names, covariance=cov,
-                  n_effective=n_eff, evaluations=obj.calls + len(shifts), converged=bool(res.status > 0) and not np.all(r == obj.bad),  # type: ignore[attr-defined]
-                  message=str(res.message),  # type: ignore[attr-defined]
-                  discretization={n: float(np.sqrt(sum(d[i] ** 2 for d in shifts))) for i, n in enumerate(obj.names)})
+                  n_effective=n_effective, evaluations=evaluations,
+                  converged=bool(res.status > 0) and not np.all(r == obj.bad), message=str(res.message), **fields)
 
 
 _TERM_COORDINATE = {"coulomb_motor": "F_cm", "coulomb_load": "F_cl", "current_loop": "T_c_us"}
@@ -325,3 +323,202 @@ def significant_terms(result: PemFit, *, keep_all: bool = False) -> tuple[ModelT
         kept[term] = bool(keep_all or z2 > threshold)
         selection[term] = {"z2": float(z2), "threshold": threshold, "kept": kept[term]}
     return ModelTerms(**{t: kept.get(t, False) for t in ("coulomb_motor", "coulomb_load", "current_loop")}), selection
+
+
+# --- the estimator: prediction errors of the Kalman predictor -------------------------------------
+#: Torque disturbances per sample, relative to RMS τ_ref, of the Kalman fits before the noise model is
+#: chosen: a predictor that follows the record closely has a wide basin, one that trusts the model a
+#: sharp minimum.
+_CONTINUATION = (1e-2, 1e-3)
+#: ... and the levels the noise model is chosen among by likelihood at the first fit's optimum.
+_PROCESS_NOISE_GRID = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1)
+#: The Kalman fit's log-parameters are bounded to ×/÷ this around its start: its predictor stays finite
+#: far from the plant, and a start's damping can be off by more than ``_LOG_RANGE``.
+_KALMAN_LOG_RANGE = math.log(1e3)
+#: ε's closing profile: ± this share of the estimate, on this many points; its best local minima start
+#: the final fit again.
+_POLISH_SPAN = 0.08
+_POLISH_POINTS = 17
+_POLISH_STARTS = 3
+_PROFILE_FIRST = True
+#: Iterations of each continuation fit at most, and their relative tolerance in step and cost (they only
+#: bring the estimate into the final fit's basin).
+_CONTINUATION_NFEV = 20
+_KALMAN_TOL = 1e-8
+#: Shares of the disturbance on the load the noise model is chosen among: none (a drive's torque noise
+#: acts on the motor), or enough for the predictor to follow a load thrown around the gap.
+_LOAD_SHARES = (0.0, 0.3)
+#: ε factors tried at the chosen noise level before the second fit (then ± half and a quarter of a step
+#: around the best): a predictor that trusts the model sees ε sharply, with local minima ±10 % around
+#: the optimum.
+_EPSILON_FACTORS = tuple(float(f) for f in np.geomspace(0.5, 2.0, 13))
+
+
+class _KalmanObjective(_Objective):
+    """The prediction errors of :func:`commission.ident.kalman.innovations`, over each encoder's noise."""
+
+    def __init__(self, problem: KalmanProblem, terms: ModelTerms, process_noise_nm: float, load_share: float) -> None:
+        self.kp, self.terms, self.process_noise_nm, self.load_share = problem, terms, process_noise_nm, load_share
+        self.names = tuple(f"ln {n}" for n in PARAMETER_NAMES) + ("eps_deg",) + tuple(
+            n for n, on in (("F_cm", terms.coulomb_motor), ("F_cl", terms.coulomb_load),
+                            ("T_c_us", terms.current_loop)) if on)
+        self.calls = 0
+        self.bad = math.inf
+        self.size = (problem.motor_position.size - 1) * problem.outputs
+
+    def innovations(self, z: NDArray[np.float64]) -> Innovations | None:
+        self.calls += 1
+        p, eps, extra = self.unpack(z)
+        return innovations(self.kp, p, eps, coulomb_motor_nm=extra.get("F_cm", 0.0),
+                           coulomb_load_nm=extra.get("F_cl", 0.0), lag_s=1e-6 * extra.get("T_c_us", 0.0),
+                           process_noise_nm=self.process_noise_nm, load_share=self.load_share)
+
+    def __call__(self, z: NDArray[np.float64]) -> NDArray[np.float64]:
+        inn = self.innovations(z)
+        v = inn.error.ravel() if inn is not None else np.full(self.size, math.inf)
+        if not (np.all(np.isfinite(v)) and float(np.max(np.abs(v), initial=0.0)) <= self.bad):
+            return np.full(v.shape, self.bad)
+        return v
+
+
+def _coordinates(start: PemFit, obj: _Objective, epsilon_max_rad: float, torque_rms_nm: float) -> tuple[
+        NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """(z, lo, hi, x_scale, diff steps) of a fit from ``start``'s estimate (its terms' values included)."""
+    p = start.parameters
+    z = [math.log(getattr(p, n)) for n in PARAMETER_NAMES] + [math.degrees(start.epsilon_rad)]
+    lo = [v - _KALMAN_LOG_RANGE for v in z[:6]] + [0.0]
+    hi = [v + _KALMAN_LOG_RANGE for v in z[:6]] + [math.degrees(epsilon_max_rad)]
+    scale = [0.1] * 6 + [0.05]
+    steps = [_DIFF_STEP * max(abs(v), 1.0) for v in z[:6]] + [1e-5]
+    f = max(torque_rms_nm, 1e-12)
+    for name in obj.names[7:]:
+        if name == "T_c_us":
+            z.append(1e6 * start.lag_s)
+            lo.append(0.0), hi.append(_LAG_MAX_US), scale.append(50.0), steps.append(1e-3)
+        else:
+            z.append(start.coulomb_motor_nm if name == "F_cm" else start.coulomb_load_nm)
+            lo.append(0.0), hi.append(10.0 * f), scale.append(0.01 * f), steps.append(1e-6 * f)
+    lo_a, hi_a = np.array(lo), np.array(hi)
+    return np.clip(np.array(z), lo_a, hi_a), lo_a, hi_a, np.array(scale), np.array(steps)
+
+
+def _epsilon_profile(obj: _KalmanObjective, z: NDArray[np.float64], top_deg: float,
+                     pool: ThreadPoolExecutor) -> NDArray[np.float64]:
+    """``z`` with ε moved to the lowest cost of the profile (the other coordinates held) over
+    ``_EPSILON_FACTORS`` of it, refined around the best."""
+    def at(eps_deg: float) -> NDArray[np.float64]:
+        return np.concatenate((z[:6], [min(eps_deg, top_deg)], z[7:]))
+
+    def best(values: list[float]) -> float:
+        costs = list(pool.map(lambda e: float(np.sum(obj(at(e)) ** 2)), values))
+        return values[int(np.argmin(costs))]
+
+    e = best([z[6] * f for f in _EPSILON_FACTORS])
+    step = _EPSILON_FACTORS[1] / _EPSILON_FACTORS[0]
+    e = best([e * step ** a for a in (-0.5, -0.25, 0.0, 0.25, 0.5)])
+    return at(e)
+
+
+def _armed(obj: _KalmanObjective, z: NDArray[np.float64]) -> _KalmanObjective:
+    """``obj`` with its divergence plateau set far above its residual at ``z``."""
+    v0 = obj(z)
+    obj.bad = 1e3 * max(1.0, float(np.max(np.abs(v0)))) if np.all(np.isfinite(v0)) else 1e12
+    return obj
+
+
+def _noise_level(at: Callable[[float, float], Innovations | None], pool: ThreadPoolExecutor) -> tuple[float, float]:
+    """The noise model of the largest likelihood: (torque disturbance relative to RMS τ_ref, the load's
+    share of it) over ``_PROCESS_NOISE_GRID`` × ``_LOAD_SHARES``, the level then refined to the vertex of
+    the parabola in ln q through the best and its neighbours."""
+    grid = np.array(_PROCESS_NOISE_GRID)
+    cells = [(float(q), share) for share in _LOAD_SHARES for q in grid]
+    nll = np.array(list(pool.map(lambda c: (lambda i: i.negative_log_likelihood() if i is not None else math.inf)(
+        at(*c)), cells))).reshape(len(_LOAD_SHARES), grid.size)
+    j, i = np.unravel_index(int(np.argmin(nll)), nll.shape)
+    share, row = _LOAD_SHARES[int(j)], nll[int(j)]
+    if 0 < i < grid.size - 1 and np.all(np.isfinite(row[i - 1:i + 2])):
+        x = np.log(grid[i - 1:i + 2])
+        c = np.polyfit(x, row[i - 1:i + 2], 2)
+        if c[0] > 0:
+            return float(np.exp(np.clip(-c[1] / (2 * c[0]), x[0], x[2]))), share
+    return float(grid[i]), share
+
+
+def _epsilon_polish(obj: _KalmanObjective, z: NDArray[np.float64], top_deg: float,
+                    pool: ThreadPoolExecutor) -> tuple[list[NDArray[np.float64]], tuple[float, float]]:
+    """ε over ±``_POLISH_SPAN`` of the estimate (the other coordinates held): the profile's local minima,
+    most likely first (at most ``_POLISH_STARTS``), and the range of grid points within the 95 %
+    likelihood-ratio threshold (χ²₁: 3.84) of the best — ends stretched to the next grid point, where
+    the ratio is known to be past it [deg]."""
+    grid = [min(z[6] * (1.0 + _POLISH_SPAN * f), top_deg) for f in np.linspace(-1.0, 1.0, _POLISH_POINTS)]
+
+    def nll(eps_deg: float) -> float:
+        inn = obj.innovations(np.concatenate((z[:6], [eps_deg], z[7:])))
+        return inn.negative_log_likelihood() * inn.normalized.size if inn is not None else math.inf
+
+    costs = np.array(list(pool.map(nll, grid)))
+    padded = np.concatenate(([math.inf], costs, [math.inf]))
+    minima = [i for i in range(len(grid)) if padded[i + 1] <= padded[i] and padded[i + 1] <= padded[i + 2]]
+    minima = sorted(minima, key=lambda i: costs[i])[:_POLISH_STARTS]
+    i = minima[0]
+    inside = np.flatnonzero(costs <= costs[i] + 3.84)
+    a, b = int(inside.min()), int(inside.max())
+    lo_deg = grid[max(a - 1, 0)] if a > 0 else 0.0
+    hi_deg = grid[min(b + 1, len(grid) - 1)] if b < len(grid) - 1 else top_deg
+    return [np.concatenate((z[:6], [grid[j]], z[7:])) for j in minima], (lo_deg, hi_deg)
+
+
+def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float, threads: int = 2,
+               max_nfev: int = 30) -> PemFit:
+    """The prediction-error estimate with the Kalman predictor of the whole state, from ``start``
+    (its parameters, ε, terms and their values).
+
+    1. continuation (``_CONTINUATION``): least squares of the prediction errors with a predictor that
+       assumes a large torque disturbance — it follows the record, so its basin is wide, and ε is
+       profiled there — then with one that trusts the model (a sharp minimum);
+    2. the noise model chosen by likelihood at that optimum (the gain from the noise levels: the
+       encoders' quantization is known, the torque disturbance and its share on the load estimated);
+    3. the least squares again with it. Intervals: the Newey–West covariance of that fit.
+
+    Deterministic: fixed starts and grids, Jacobian columns computed one by one (threads only share
+    them out), so the answer is a smooth function of the record.
+    """
+    ref = problem.torque_rms_nm
+    terms = start.terms
+
+    def objective(level: float, share: float = _LOAD_SHARES[-1]) -> _KalmanObjective:
+        return _KalmanObjective(problem, terms, level * ref, share)
+
+    obj = objective(_CONTINUATION[0])
+    z, lo, hi, scale, steps = _coordinates(start, obj, epsilon_max_rad, ref)
+    calls = 0
+    free = np.ones(z.size, dtype=bool)
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        # continuation: a predictor that follows the record (wide basin, where ε is profiled), then one
+        # that trusts the model (sharp minimum; a profile there could jump to a neighbouring valley)
+        for level in _CONTINUATION:
+            obj = _armed(objective(level), z)
+            if level == _CONTINUATION[0] and z[6] > 0 and _PROFILE_FIRST:
+                z = _epsilon_profile(obj, z, float(hi[6]), pool)
+            z, res = _least_squares(obj, z, free, lo, hi, scale, steps, pool, _CONTINUATION_NFEV, _KALMAN_TOL)
+            calls += obj.calls
+        level, share = _noise_level(lambda lv, sh: objective(lv, sh).innovations(z), pool)
+        calls += len(_PROCESS_NOISE_GRID) * len(_LOAD_SHARES)
+        obj = _armed(objective(level, share), z)
+        z, res = _least_squares(obj, z, free, lo, hi, scale, steps, pool, max_nfev)
+        interval = None
+        if z[6] > 0:
+            # ε's likelihood is rugged at this scale (grazing contacts come and go): the best of a fine
+            # profile around the optimum, and the interval the likelihood ratio gives on it
+            # its local minima are the final fit's starts too: the lowest cost is kept
+            starts, interval = _epsilon_polish(obj, z, float(hi[6]), pool)
+            for s in starts:
+                if s[6] != z[6]:
+                    zs, rs = _least_squares(obj, s, free, lo, hi, scale, steps, pool, max_nfev)
+                    if float(np.sum(np.asarray(rs.fun) ** 2)) < float(np.sum(np.asarray(res.fun) ** 2)):  # type: ignore[attr-defined]
+                        z, res = zs, rs
+        calls += obj.calls
+    inn = obj.innovations(z)
+    n_eff = _n_effective(inn.normalized[:, 0]) if inn is not None else float(np.asarray(res.fun).size)  # type: ignore[attr-defined]
+    return _result(obj, z, res, n_eff, calls, selection=start.selection, process_noise_nm=obj.process_noise_nm,
+                   load_share=obj.load_share, innovations=inn, epsilon_profile_deg=interval)

@@ -7,12 +7,17 @@
    residual's low-pass for this record (the band, the resonance, the encoder's quantization).
 2. ``scan``  — (ε, damping split) cells on the projected torque residual, J_m, B_m, J_l and the
    motor-side columns solved linearly in each (:mod:`commission.ident.scan`).
-3. ``fit``   — one prediction-error least squares of every parameter and the candidate terms from
-   the best cell, on the residual with the load-state observer; terms kept by their Wald
-   statistic (:mod:`commission.ident.estimator`).
-4. ``assess`` — residual, whiteness, intervals: approximate and why (:mod:`commission.ident.assess`).
-5. ``check`` — the paper's step 5 for the start and the result: the dead-zone model simulated
-   open loop, its FRD against the measured one (:func:`commission.ident.paper.frd_error`).
+3. ``fit``   — the start's refinement: prediction-error least squares of every parameter and the
+   candidate terms from the best cell, on the torque residual with a load-state observer; terms
+   kept by their Wald statistic (:func:`commission.ident.estimator.fit`).
+4. ``kalman`` — **the estimate**: prediction errors of the Kalman predictor of the whole state, its
+   noise model chosen by likelihood (:func:`commission.ident.estimator.kalman_fit`).
+5. ``restarts`` — only when the estimate leaves model error: stages 2–4 again from stiffer starts,
+   the most likely estimate kept.
+6. ``check`` — prediction errors, intervals: approximate and why
+   (:func:`commission.ident.assess.assess`); the paper's step 5 for the start and the
+   result: the dead-zone model simulated open loop, its FRD against the measured one
+   (:func:`commission.ident.paper.frd_error`).
 
 A record whose samples are not uniform (host-streamed) is brought to its nominal grid first
 (:mod:`commission.ident.resample`). ``paper`` wraps :func:`commission.ident.paper.paper_identify`
@@ -50,6 +55,9 @@ _FRICTION_SCREEN = 0.02
 _SCAN_STEP = 5
 #: Quantization floor the residual's low-pass is lowered to, in good-fit levels.
 _QUANTIZATION_TARGET = 2.5
+#: Torque disturbance (relative to RMS τ_ref) of the estimate's noise model above which the stiffer starts
+#: are tried too: the most likely estimate is kept, so a noisy record only pays their time.
+_RESTART_DISTURBANCE = 0.01
 #: Stiffness factors of the further starts when the first fit leaves model error (:func:`_stiffer_starts`).
 _STIFFER_STARTS = (1.7, 3.0)
 
@@ -204,14 +212,18 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
     cell, scan_detail = _scan_stage(run)
     st.done("scan", **scan_detail)
     st.start("fit", 0.35)
-    pem, observer, fit_detail = _fit_stage(run, cell, scan_detail)
+    pem, _, fit_detail = _fit_stage(run, cell, scan_detail)
     st.done("fit", **fit_detail)
-    if run.encoders is None and _model_error(run, pem, observer):
+    st.start("kalman", 0.55)
+    pem = _kalman_stage(run, pem)
+    st.done("kalman", process_noise_nm=pem.process_noise_nm, load_share=pem.load_share, evaluations=pem.evaluations,
+            converged=pem.converged, events=pem.innovations.events if pem.innovations is not None else 0)
+    if run.encoders is None and _model_error(run, pem):
         st.start("restarts", 0.7)
-        run, cell, pem, observer, restarts = _stiffer_starts(run, cell, pem, observer)
+        run, cell, pem, restarts = _stiffer_starts(run, cell, pem)
         st.done("restarts", starts=restarts)
     st.start("check", 0.9)
-    quality, iterations = _check_stage(run, cell, pem, observer)
+    quality, iterations = _check_stage(run, cell, pem)
     st.done("check", fit=quality.to_dict())
     return _identification(run, pem, quality, iterations, st.items, scan_detail["evaluations"])
 
@@ -363,13 +375,8 @@ def _fit_stage(run: _Run, cell: Any, scan_detail: dict[str, Any]) -> tuple[PemFi
         fast = observer(1.0, at)
     else:
         at = p0
-    # the estimate's sensitivity to how the residual is discretized is part of its uncertainty: the motor
-    # position a global spline instead, the observer half as fast
-    alternates = ((run.prepared(fc, "spline" if opt.motor_interpolation == "local" else "local"), fast),
-                  (run.problem, observer(0.5, at)))
-
     def refit(p: TwoMassParameters, eps: float, hold: bool) -> PemFit:
-        return fit(run.problem, p, eps, terms, fast, alternates=alternates, coulomb_motor_nm=first.coulomb_motor_nm,
+        return fit(run.problem, p, eps, terms, fast, coulomb_motor_nm=first.coulomb_motor_nm,
                    coulomb_load_nm=first.coulomb_load_nm, lag_s=first.lag_s, hold_epsilon=hold, **common)
 
     pem = refit(first.parameters, first.epsilon_rad, False)
@@ -401,29 +408,36 @@ def _fit_stage(run: _Run, cell: Any, scan_detail: dict[str, Any]) -> tuple[PemFi
     return pem, fast, detail
 
 
-def _model_error(run: _Run, pem: PemFit, observer: Any) -> bool:
-    """The fit leaves model error: more than the approximate level, and not as white noise."""
+def _model_error(run: _Run, pem: PemFit) -> bool:
+    """The estimate may leave model error: the assessment says so, or its noise model needs a torque
+    disturbance above ``_RESTART_DISTURBANCE`` (a noisy drive's, or a wrong basin's)."""
     from .assess import assess
 
-    q = assess(pem, torque_rms_nm=run.torque_rms_nm, motor_samples=run.problem.acceleration_f.size,
-               decimated_rate_hz=run.fs / run.problem.decimation, good_fit_ratio=run.opt.good_fit_ratio,
-               noise_floor_ratio=float(run.cutoff["quantization_floor_ratio"]), cutoff_hz=run.problem.cutoff_hz,
-               observer_bandwidth_hz=observer.bandwidth_hz, sample_rate_hz=run.fs,
-               resonance_hz=_resonance_hz(pem.parameters))
-    return q.model_error
+    q = assess(pem, torque_rms_nm=_torque_rms(run), sample_rate_hz=run.fs)
+    return q.model_error or (q.process_noise_ratio or 0.0) > _RESTART_DISTURBANCE
 
 
-def _stiffer_starts(run: _Run, cell: Any, pem: PemFit, observer: Any) -> tuple[_Run, Any, PemFit, Any, list[dict[str, float]]]:
-    """The scan and the fit again from the start with its stiffness raised by each of ``_STIFFER_STARTS``
-    (the damping by its square root, ζ kept); the fit with the lowest residual is kept.
+def _torque_rms(run: _Run) -> float:
+    return float(np.sqrt(np.mean(run.rec.torque_ref ** 2)))
+
+
+def _likelihood_cost(pem: PemFit) -> float:
+    """The estimate's negative log-likelihood per prediction error: comparable across starts and noise models."""
+    return pem.innovations.negative_log_likelihood() if pem.innovations is not None else math.inf
+
+
+def _stiffer_starts(run: _Run, cell: Any, pem: PemFit) -> tuple[_Run, Any, PemFit, list[dict[str, float]]]:
+    """The scan, the fit and the estimate again from the start with its stiffness raised by each of
+    ``_STIFFER_STARTS`` (the damping by its square root, ζ kept); the estimate of the largest likelihood
+    is kept.
 
     The gap softens the spring the FRD sees (its describing function), so on backlash-rich records the
     frequency-domain start's resonance is low, often beyond the fit's basin; the inertias, from the
-    FRD's asymptotes, hold. Costs compare: the same residual, and observers of the same loop gain.
+    FRD's asymptotes, hold.
     """
-    best = (run, cell, pem, observer)
-    tried = [{"stiffness_factor": 1.0, "residual_ratio": pem.cost_nm / run.torque_rms_nm}]
-    spent = pem.evaluations  # every evaluation after the first scan, whichever fit is kept
+    best = (run, cell, pem)
+    tried = [{"stiffness_factor": 1.0, "negative_log_likelihood": _likelihood_cost(pem)}]
+    spent = pem.evaluations
     assert run.base is not None
     for factor in _STIFFER_STARTS:
         base = replace(run.base, K=factor * run.base.K, D=math.sqrt(factor) * run.base.D)
@@ -432,41 +446,53 @@ def _stiffer_starts(run: _Run, cell: Any, pem: PemFit, observer: Any) -> tuple[_
         other = replace(run, base=base, notes=[])
         try:
             c, detail = _scan_stage(other)
-            p, o, _ = _fit_stage(other, c, detail)
+            p = _kalman_stage(other, _fit_stage(other, c, detail)[0])
         except (IdentificationError, ValueError, np.linalg.LinAlgError) as err:
             # a start this far off may leave the simulation no finite point to start from: not a start then
-            tried.append({"stiffness_factor": factor, "residual_ratio": math.inf, "failed": str(err)})
+            tried.append({"stiffness_factor": factor, "negative_log_likelihood": math.inf, "failed": str(err)})
             continue
         spent += detail["evaluations"] + p.evaluations
-        tried.append({"stiffness_factor": factor, "residual_ratio": p.cost_nm / run.torque_rms_nm})
-        if p.cost_nm < best[2].cost_nm:
-            best = (other, c, p, o)
-    chosen, c, p, o = best
+        tried.append({"stiffness_factor": factor, "negative_log_likelihood": _likelihood_cost(p)})
+        if _likelihood_cost(p) < _likelihood_cost(best[2]):
+            best = (other, c, p)
+    chosen, c, p = best
     p = replace(p, evaluations=spent)
     if chosen is not run:
         factor = chosen.base.K / run.base.K  # type: ignore[union-attr]
-        run.notes.append(f"the fit from the frequency-domain start left model error ({100 * tried[0]['residual_ratio']:.2g} % "
-                         f"of the torque); from its stiffness ×{factor:.2g} it leaves "
-                         f"{100 * p.cost_nm / run.torque_rms_nm:.2g} % and is kept (the gap softens the spring the "
-                         "frequency response sees)")
+        run.notes.append(f"the estimate from the frequency-domain start left model error; from its stiffness "
+                         f"×{factor:.2g} the record is {math.exp(0.5 * (tried[0]['negative_log_likelihood'] - _likelihood_cost(p))):.3g}× "
+                         "as likely and it is kept (the gap softens the spring the frequency response sees)")
         chosen = replace(chosen, notes=run.notes + chosen.notes)
     else:
-        run.notes.append(f"the fit left model error ({100 * tried[0]['residual_ratio']:.2g} % of the torque); stiffer "
-                         "starts (×" + ", ×".join(f"{f:g}" for f in _STIFFER_STARTS) + " K) did not lower it")
-    return chosen, c, p, o, tried
+        run.notes.append("the estimate left model error; stiffer starts (×" + ", ×".join(f"{f:g}" for f in _STIFFER_STARTS)
+                         + " K) did not explain the record better")
+    return chosen, c, p, tried
 
 
-def _check_stage(run: _Run, cell: Any, pem: PemFit, observer: Any) -> tuple[FitQuality, list[dict[str, float]]]:
-    """The fit's quality, and the paper's step 5 for the start and the result."""
+def _kalman_stage(run: _Run, start: PemFit) -> PemFit:
+    """The estimate: prediction errors of the Kalman predictor of the whole state, from the torque-residual fit."""
+    from .estimator import kalman_fit
+    from .kalman import kalman_problem
+    from .residual import motor_position_samples
+
+    rec = run.rec
+    kp = kalman_problem(rec.torque_ref, motor_position_samples(rec.motor_position, rec.motor_velocity, run.fs), run.fs,
+                        load_position=rec.load_position if run.use_load else None,
+                        velocity_scale_rad_s=run.opt.coulomb_velocity_scale_rad_s,
+                        lost=run.lost if run.lost.any() else None)
+    eps_max = max(run.epsilon_max_rad, 2.0 * start.epsilon_rad)
+    if not math.isfinite(eps_max):
+        eps_max = math.radians(2.0 * run.opt.epsilon_bounds_deg[1])
+    return kalman_fit(kp, start, epsilon_max_rad=eps_max, threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations)
+
+
+def _check_stage(run: _Run, cell: Any, pem: PemFit) -> tuple[FitQuality, list[dict[str, float]]]:
+    """The estimate's quality, and the paper's step 5 for the start and the result."""
     from .assess import assess
     from .frd import estimate_frd
 
-    rec, fs, problem = run.rec, run.fs, run.problem
-    quality = assess(pem, torque_rms_nm=run.torque_rms_nm, motor_samples=problem.acceleration_f.size,
-                     decimated_rate_hz=fs / problem.decimation, good_fit_ratio=run.opt.good_fit_ratio,
-                     noise_floor_ratio=float(run.cutoff["quantization_floor_ratio"]), cutoff_hz=problem.cutoff_hz,
-                     observer_bandwidth_hz=observer.bandwidth_hz, sample_rate_hz=fs,
-                     resonance_hz=_resonance_hz(pem.parameters))
+    rec, fs = run.rec, run.fs
+    quality = assess(pem, torque_rms_nm=_torque_rms(run), sample_rate_hz=fs)
     run.notes.extend(f"approximate result: {r}" for r in quality.reasons)
     if quality.noise_limited:
         run.notes.append(f"the model leaves {100 * quality.residual_ratio:.2f} % of the torque unexplained, but as "
@@ -522,18 +548,22 @@ def _best_cell(sc: Any) -> Any:
     return next((c for c in sc.cells if c.parameters is not None and math.isfinite(c.cost_nm)), None)
 
 
-#: Relative resolution of the parameters: the identifier's model (exact contact maps, the motor
-#: position interpolated between samples) and an independent integration of the same plant
-#: (sim_drive's RK4) differ by up to this much on noise-free records.
-_RELATIVE_RESOLUTION = 5e-4
+#: Relative resolution of the parameters: a coarse encoder's quantization error is not white where the
+#: motor moves slowly (it keeps its sign over many samples), which the prediction errors' statistics
+#: do not fully show; estimates of noise-free 17-bit records move by up to about this much.
+_RELATIVE_RESOLUTION = 1e-3
 
 
 def _epsilon_interval(pem: PemFit, position_step_rad: float) -> tuple[float, float]:
-    """ε's 95 % interval [rad], at least ± the motor encoder's step (what the record resolves)."""
-    half = max(1.96 * pem.epsilon_stderr_rad, position_step_rad)
+    """ε's 95 % interval [rad], at least ± the motor encoder's step (what the record resolves) and the
+    model's relative resolution."""
+    half = max(1.96 * pem.epsilon_stderr_rad, position_step_rad, _RELATIVE_RESOLUTION * pem.epsilon_rad)
     if not math.isfinite(half):
         half = math.inf
-    return max(pem.epsilon_rad - half, 0.0), pem.epsilon_rad + half
+    lo, hi = max(pem.epsilon_rad - half, 0.0), pem.epsilon_rad + half
+    if pem.epsilon_profile_deg is not None:  # and at least the likelihood ratio's on ε's rugged profile
+        lo, hi = min(lo, math.radians(pem.epsilon_profile_deg[0])), max(hi, math.radians(pem.epsilon_profile_deg[1]))
+    return lo, hi
 
 
 def _intervals(pem: PemFit, determined: bool = True) -> dict[str, tuple[float, float]]:

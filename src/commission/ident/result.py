@@ -65,6 +65,13 @@ class FitQuality:
     model at all leaves): the estimates carry no information, and every interval is the whole range the
     fit searched."""
 
+    innovation_rms: float | None = None
+    """Kalman fit: RMS of its normalized one-step prediction errors e/√S (1: the model and the noise
+    model explain the record; more is model error) [-]."""
+    process_noise_ratio: float | None = None
+    """Kalman fit: the torque disturbance per sample its noise model assumes (chosen by likelihood) /
+    RMS τ_ref [-]."""
+
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
         out["reasons"] = list(self.reasons)
