@@ -102,3 +102,21 @@ def test_the_estimator_recovers_a_plant_from_a_start_ten_percent_off() -> None:
     for name in ("J_m", "J_l", "K"):
         assert abs(math.log(getattr(p, name) / getattr(true, name))) <= 4 * fit.stderr("ln " + name) + 1e-4, name
     assert fit.innovations is not None and _rms(fit.innovations.normalized) < 1.3
+
+
+def test_a_start_is_read_off_the_frequency_responses_shape_when_no_rational_fit_gives_one() -> None:
+    # the shape start (used when friction distorts the FRD so that no 2/3 fit maps to a plant): its modes
+    # from the response's peak and dip, J_m from its high-frequency asymptote — near enough for the fit
+    from commission.ident.frd import estimate_frd
+    from commission.ident.start import _shape_start
+
+    fs = 8000.0
+    true = replace(REFERENCE_PLANT, D=0.0045)
+    tau, r = _record(fs, 10.0, params=true, eps_deg=0.0, coulomb_motor_nm=0.02, coulomb_load_nm=0.02)
+    frd = estimate_frd(tau, r.motor_velocity, fs, band_hz=(0.1, 400.0), resolution_hz=0.1, quality=False)
+    p = _shape_start(frd, 0.25 * fs)
+    assert p is not None
+    got, want = modes(p), modes(true)
+    assert got.f_resonance_hz == pytest.approx(want.f_resonance_hz, rel=0.05)
+    assert got.f_antiresonance_hz == pytest.approx(want.f_antiresonance_hz, rel=0.05)
+    assert p.J_m == pytest.approx(true.J_m, rel=0.1)

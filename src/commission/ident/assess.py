@@ -7,7 +7,8 @@ model and its noise model describe the record. A result is *approximate* when
 * they miss by more than ``INNOVATION_MISFIT`` × their predicted size (``INNOVATION_UNDETERMINED``:
   nothing is determined, every interval unbounded); or
 * the noise model needs a torque disturbance of ``DISTURBANCE_MISFIT`` of RMS τ_ref or more to follow
-  the record: it then stands in for dynamics the model lacks, and the errors look like noise; or
+  the record: it then stands in for dynamics the model lacks, and the errors look like noise (the
+  intervals are then unbounded: the curvature describes no bias); or
 * the least squares stopped at its evaluation limit, not at a stationary point; or
 * a 95 % interval is wider than commissioning needs: ε to ``EPSILON_TOLERANCE_DEG`` or
   ``RELATIVE_TOLERANCE`` of itself, J_m, J_l and K to ``RELATIVE_TOLERANCE``, the resonance and
@@ -125,21 +126,24 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float) -> FitQu
     level = float(np.sqrt(np.mean(inn.normalized ** 2)))
     flat, stationary = whiteness(nu, sample_rate_hz)
     white = flat >= WHITE_FLATNESS and stationary <= WHITE_STATIONARY
-    determined = level < INNOVATION_UNDETERMINED
     disturbance = fit.process_noise_nm / max(torque_rms_nm, 1e-300)
     absorbed = disturbance >= DISTURBANCE_MISFIT
     misfit = level > INNOVATION_MISFIT or absorbed
+    # a noise model that stands in for missing dynamics leaves curvature that describes no error of the
+    # estimate's (a bias): nothing is claimed then
+    determined = level < INNOVATION_UNDETERMINED and not absorbed
     scale = max(1.0, level) if misfit else 1.0
     if scale > 1.0:
         fit = replace(fit, covariance=fit.covariance * scale ** 2)
     reasons: list[str] = []
-    if not determined:
+    if level >= INNOVATION_UNDETERMINED:
         reasons.append(f"the model's one-step predictions miss by {level:.0f}× what the noise explains: the record "
                        "does not determine the parameters or ε under this model; their intervals are unbounded")
     elif absorbed:
         reasons.append(f"the model follows the record only with a torque disturbance of {100 * disturbance:.2g} % of "
                        "RMS τ_ref per sample, far more than a drive's noise: the rest is torque the model leaves "
-                       "unexplained, and the parameters may be off by more than their intervals")
+                       "unexplained; how far off the parameters are the record does not say, and their intervals "
+                       "are unbounded")
     elif misfit:
         reasons.append(f"the model's one-step predictions miss by {level:.2g}× what the encoders' and the torque's "
                        "noise explain" + ("" if white else ", and not as white noise") + ": torque the model leaves unexplained, "

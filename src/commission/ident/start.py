@@ -180,14 +180,54 @@ def frequency_start(rec: Recording, problem: ResidualProblem, *, band_hz: tuple[
             cost = projected_cell(problem, cell_rates(p, 0.5), 0.0, coulomb=True).cost_nm
             scored.append((cost, f_lo, p, how, float(fit.delay_s)))
     if not scored:
-        raise IdentificationError("the frequency response is not that of a two-mass plant with its resonance "
-                                  f"below fs/4 = {f_max:.0f} Hz, from any low band edge up to "
-                                  f"{max(edges, default=band_hz[0]):g} Hz")
+        p = _shape_start(frd, f_max)
+        if p is None:
+            raise IdentificationError("the frequency response is not that of a two-mass plant with its resonance "
+                                      f"below fs/4 = {f_max:.0f} Hz, from any low band edge up to "
+                                      f"{max(edges, default=band_hz[0]):g} Hz")
+        notes.append("no rational fit of the frequency response gave a two-mass plant (friction or impacts distort "
+                     f"it); the start is read off its shape: resonance {modes(p).f_resonance_hz:.1f} Hz, "
+                     f"anti-resonance {modes(p).f_antiresonance_hz:.1f} Hz")
+        return Start(frd, whole, p, "shape", 1.0 / fs, band_hz[0])
     cost, f_lo, p, how, delay = min(scored, key=lambda c: (c[0], c[1]))
     if f_lo > band_hz[0]:
         notes.append(f"frequency-domain start fitted from {f_lo:g} Hz up (chosen by the torque residual "
                      "among low band edges; the low band is distorted)")
     return Start(frd, whole, p, how, delay, f_lo)
+
+
+def _shape_start(frd: FRD, f_max: float) -> TwoMassParameters | None:
+    """A start read off the FRD's shape when no rational fit gives a two-mass plant: the resonance at the
+    peak of the apparent inertia's inverse ω·|G| above 5 Hz, the anti-resonance at its dip just below, J_m
+    from the high-frequency asymptote |G| → 1/(J_m·ω), ζ 0.05 and a mechanical corner at 1 Hz
+    (both refined by the fit). None when the shape shows no such pair."""
+    f = frd.frequency_hz
+    band = (f >= 5.0) & (f < f_max)
+    if band.sum() < 20:
+        return None
+    # ω·|G| smoothed over ±5 % in frequency (its median): the bins of one record are noisy
+    wg = 2.0 * np.pi * f * np.abs(frd.response)
+    lo = np.searchsorted(f, 0.95 * f)
+    hi = np.searchsorted(f, 1.05 * f, side="right")
+    smooth = np.array([np.median(wg[a:max(b, a + 1)]) for a, b in zip(lo, hi)])
+    idx = np.flatnonzero(band)
+    r = idx[int(np.argmax(smooth[idx]))]
+    # the dip just below it: a two-mass plant's anti-resonance lies above f_r/√(1 + J_l/J_m), f_r/3.5 for
+    # the loads drives carry (friction bends the low band down, so not the band's global minimum)
+    below = idx[(idx < r) & (f[idx] > f[r] / 3.5)]
+    high = idx[f[idx] > 1.5 * f[r]]
+    if below.size < 5 or high.size < 5:
+        return None
+    a = below[int(np.argmin(smooth[below]))]
+    f_r, f_a = float(f[r]), float(f[a])
+    if not f_a < f_r:
+        return None
+    J_m = float(np.median(1.0 / smooth[high]))
+    J_l = J_m * ((f_r / f_a) ** 2 - 1.0)
+    K = (2.0 * np.pi * f_a) ** 2 * J_l
+    B = 2.0 * np.pi * 1.0 * (J_m + J_l)
+    D = 2.0 * 0.05 * 2.0 * np.pi * f_r / (1.0 / J_m + 1.0 / J_l)
+    return TwoMassParameters(J_m=J_m, J_l=J_l, B_m=0.5 * B, B_l=0.5 * B, K=K, D=D)
 
 
 def quantization_floor_nm(step_rad: float, J_m: float, sample_rate_hz: float, cutoff_hz: float) -> float:
