@@ -292,7 +292,7 @@ def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.float64], fm: NDArray[np.float64],
-            measured: NDArray[np.bool_], Fcm: float, Fcl: float, eps: float, vs: float, Ts: float,
+            measured: NDArray[np.bool_], Fcm: float, Fcl: float, eps: float, Ts: float,
             Phi: NDArray[np.float64], Gam: NDArray[np.float64], PhiH: NDArray[np.float64], GamH: NDArray[np.float64],
             V: NDArray[np.complex128], lam: NDArray[np.complex128], Vi: NDArray[np.complex128],
             Bc: NDArray[np.float64], Q: NDArray[np.float64], R: NDArray[np.float64], x0: NDArray[np.float64],
@@ -443,7 +443,7 @@ def innovations(problem: KalmanProblem, params: TwoMassParameters, epsilon_rad: 
     e = np.zeros((pr.motor_position.size - 1, pr.outputs))
     S = np.ones_like(e)
     events = _filter(pr.torque_ref, pr.motor_position, yl, pr.motor_friction, pr.measured, float(coulomb_motor_nm),
-                     float(coulomb_load_nm), float(epsilon_rad), pr.velocity_scale_rad_s, Ts, model.Phi, model.Gam,
+                     float(coulomb_load_nm), float(epsilon_rad), Ts, model.Phi, model.Gam,
                      model.PhiH, model.GamH, model.V, model.lam, model.Vi, model.B, model.Q, R, x0, P0, e, S)
     S = S / R[None, :]
     return Innovations(error=e / np.sqrt(R)[None, :], normalized=e / np.sqrt(R)[None, :] / np.sqrt(S),
