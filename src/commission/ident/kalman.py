@@ -12,9 +12,10 @@ twist changes mode is propagated exactly with the switch located inside it (the 
 decompositions, bisection on the twist; interior points catch grazes).
 
 Friction: the motor's Coulomb term F_cm·tanh(v/v_s) takes the measured mean speed of the interval
-(an input, as in an equation-error model); the load's is the set-valued sign at the interval's end
-(backward Euler: the friction never reverses the load within one sample, and holds it when it
-can), the limit of the smooth sign the plant uses.
+(an input, as in an equation-error model) where the encoder moved; where it did not (a motor slower
+than one step per sample: its speed's sign unknown) it is, as the load's always is, the set-valued
+sign at the interval's end (backward Euler: the friction never reverses the mass within one sample,
+and holds it when it can), the limit of the smooth sign the plant uses.
 
 Noise model (Ljung, *System Identification*, ch. 4): each encoder measures its position with its
 quantization noise, variance step²/12 (the step read from the record); a white torque disturbance
@@ -52,7 +53,8 @@ class KalmanProblem:
     load_position: NDArray[np.float64] | None
     """Load encoder at k·Ts [rad], shape (N,); None without one."""
     motor_friction: NDArray[np.float64]
-    """tanh(v̄/v_s) of the measured mean motor speed over [k·Ts, (k+1)·Ts) [-], shape (N,)."""
+    """tanh(v̄/v_s) of the measured mean motor speed over [k·Ts, (k+1)·Ts) [-], shape (N,); exactly 0
+    where the encoder did not move (the predictor then takes the friction from its state)."""
     measurement_noise_rad: NDArray[np.float64]
     """Standard deviation of each encoder's quantization, step/√12 [rad], shape (outputs,)."""
     measured: NDArray[np.bool_]
@@ -325,6 +327,13 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
             for q in range(3):
                 a += Gam[m, i, q] * u[q]
             xe[i] = a
+        if Fcm > 0.0 and fm[k] == 0.0:
+            # the encoder did not move: the motor's friction as the load's, set-valued at the end velocity
+            f = xe[1] / (-Gam[m, 1, 2] * Fcm)
+            f = min(max(f, -1.0), 1.0)
+            u[2] = Fcm * f
+            for i in range(n):
+                xe[i] += Gam[m, i, 2] * u[2]
         if Fcl > 0.0:
             # load friction: the set-valued sign at the interval's end velocity
             f = xe[3] / (-Gam[m, 3, 3] * Fcl)
