@@ -108,6 +108,7 @@ def evaluate(seed: int, index: int, resolution_from_duration: bool = False) -> d
         return row
     row["time_s"] = time.perf_counter() - t0
     row["error"] = None
+    row["stages_s"] = {s.name: round(s.seconds, 3) for s in result.stages}
     row.update(_estimates(result))
     row.update(judge(truth, row["estimate"]))
     lo, hi = row["interval_deg"]

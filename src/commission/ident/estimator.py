@@ -344,6 +344,7 @@ _PROFILE_FIRST = True
 #: Iterations of each continuation fit at most, and their relative tolerance in step and cost (they only
 #: bring the estimate into the final fit's basin).
 _CONTINUATION_NFEV = 20
+_CONTINUATION_TOL = 1e-4
 _KALMAN_TOL = 1e-8
 #: Shares of the disturbance on the load the noise model is chosen among: none (a drive's torque noise
 #: acts on the motor), or enough for the predictor to follow a load thrown around the gap.
@@ -500,7 +501,7 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
             obj = _armed(objective(level), z)
             if level == _CONTINUATION[0] and z[6] > 0 and _PROFILE_FIRST:
                 z = _epsilon_profile(obj, z, float(hi[6]), pool)
-            z, res = _least_squares(obj, z, free, lo, hi, scale, steps, pool, _CONTINUATION_NFEV, _KALMAN_TOL)
+            z, res = _least_squares(obj, z, free, lo, hi, scale, steps, pool, _CONTINUATION_NFEV, _CONTINUATION_TOL)
             calls += obj.calls
         level, share = _noise_level(lambda lv, sh: objective(lv, sh).innovations(z), pool)
         calls += len(_PROCESS_NOISE_GRID) * len(_LOAD_SHARES)
