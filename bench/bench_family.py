@@ -109,6 +109,7 @@ def evaluate(seed: int, index: int, resolution_from_duration: bool = False) -> d
     row["time_s"] = time.perf_counter() - t0
     row["error"] = None
     row["stages_s"] = {s.name: round(s.seconds, 3) for s in result.stages}
+    row["restarts"] = next((s.detail.get("starts") for s in result.stages if s.name == "restarts"), None)
     row.update(_estimates(result))
     row.update(judge(truth, row["estimate"]))
     lo, hi = row["interval_deg"]

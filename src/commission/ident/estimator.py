@@ -290,13 +290,16 @@ def fit(problem: ResidualProblem, start: TwoMassParameters, epsilon_rad: float, 
 
 
 def _result(obj: _Objective, z: NDArray[np.float64], res: Any, n_effective: float, evaluations: int,
-            **fields: Any) -> PemFit:
-    """The :class:`PemFit` of a least squares' optimum ``z`` (its Newey–West covariance from ``res``)."""
+            free: NDArray[np.bool_] | None = None, **fields: Any) -> PemFit:
+    """The :class:`PemFit` of a least squares' optimum ``z`` over its ``free`` coordinates (default: all;
+    its Newey–West covariance from ``res``)."""
     r, J = np.asarray(res.fun), np.asarray(res.jac)
+    free = np.ones(z.size, dtype=bool) if free is None else free
+    cov = np.zeros((z.size, z.size))  # a held coordinate has no variance of its own
     try:
-        cov = _covariance(J, r)
+        cov[np.ix_(free, free)] = _covariance(J, r)
     except np.linalg.LinAlgError:
-        cov = np.full((z.size, z.size), math.nan)
+        cov[np.ix_(free, free)] = math.nan
     p, eps, extra = obj.unpack(z)
     return PemFit(parameters=p, epsilon_rad=eps, coulomb_motor_nm=extra.get("F_cm", 0.0),
                   coulomb_load_nm=extra.get("F_cl", 0.0), lag_s=1e-6 * extra.get("T_c_us", 0.0), terms=obj.terms,
@@ -353,6 +356,9 @@ _LOAD_SHARES = (0.0, 0.3)
 #: around the best): a predictor that trusts the model sees ε sharply, with local minima ±10 % around
 #: the optimum.
 _EPSILON_FACTORS = tuple(float(f) for f in np.geomspace(0.5, 2.0, 13))
+#: ε below which the continuation's estimate is taken as no gap at all [deg]: a fifth of the smallest
+#: backlash reported as one (``no_backlash_threshold_deg``'s default).
+_EPSILON_ZERO_DEG = 0.002
 
 
 class _KalmanObjective(_Objective):
@@ -375,8 +381,13 @@ class _KalmanObjective(_Objective):
                            process_noise_nm=self.process_noise_nm, load_share=self.load_share)
 
     def __call__(self, z: NDArray[np.float64]) -> NDArray[np.float64]:
+        """e_k/√S_k · ⁿ√(Π S): its sum of squares is the likelihood with the noise's scale concentrated out,
+        exp(−2·ln L/N) up to a constant. The prediction errors alone (Σe²) reward a model that makes the
+        filter trust the encoders (a tiny J_m turns the torque disturbance into a huge acceleration
+        noise): a wrong basin the variances' term closes."""
         inn = self.innovations(z)
-        v = inn.error.ravel() if inn is not None else np.full(self.size, math.inf)
+        v = (inn.normalized * math.exp(0.5 * float(np.mean(inn.log_variance)))).ravel() if inn is not None \
+            else np.full(self.size, math.inf)
         if not (np.all(np.isfinite(v)) and float(np.max(np.abs(v), initial=0.0)) <= self.bad):
             return np.full(v.shape, self.bad)
         return v
@@ -503,6 +514,10 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
                 z = _epsilon_profile(obj, z, float(hi[6]), pool)
             z, res = _least_squares(obj, z, free, lo, hi, scale, steps, pool, _CONTINUATION_NFEV, _CONTINUATION_TOL)
             calls += obj.calls
+        if z[6] < _EPSILON_ZERO_DEG:
+            # a gap this small is none: held at 0, where the predictor has no events to locate (a free ε
+            # near 0 switches mode at every zero crossing of the twist and the fit crawls there)
+            z[6], free[6] = 0.0, False
         level, share = _noise_level(lambda lv, sh: objective(lv, sh).innovations(z), pool)
         calls += len(_PROCESS_NOISE_GRID) * len(_LOAD_SHARES)
         obj = _armed(objective(level, share), z)
@@ -521,5 +536,5 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
         calls += obj.calls
     inn = obj.innovations(z)
     n_eff = _n_effective(inn.normalized[:, 0]) if inn is not None else float(np.asarray(res.fun).size)  # type: ignore[attr-defined]
-    return _result(obj, z, res, n_eff, calls, selection=start.selection, process_noise_nm=obj.process_noise_nm,
+    return _result(obj, z, res, n_eff, calls, free, selection=start.selection, process_noise_nm=obj.process_noise_nm,
                    load_share=obj.load_share, innovations=inn, epsilon_profile_deg=interval)
