@@ -485,6 +485,9 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
     """The prediction-error estimate with the Kalman predictor of the whole state, from ``start``
     (its parameters, ε, terms and their values).
 
+    Each least squares maximises the likelihood of the prediction errors with the noise's scale
+    concentrated out (:meth:`_KalmanObjective.__call__`).
+
     1. continuation (``_CONTINUATION``): least squares of the prediction errors with a predictor that
        assumes a large torque disturbance — it follows the record, so its basin is wide, and ε is
        profiled there — then with one that trusts the model (a sharp minimum);
