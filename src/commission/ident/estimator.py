@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -481,7 +481,7 @@ def _epsilon_polish(obj: _KalmanObjective, z: NDArray[np.float64], top_deg: floa
 
 
 def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float, threads: int = 2,
-               max_nfev: int = 30) -> PemFit:
+               max_nfev: int = 30, keep_all: bool = False) -> PemFit:
     """The prediction-error estimate with the Kalman predictor of the whole state, from ``start``
     (its parameters, ε, terms and their values).
 
@@ -494,6 +494,11 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
     2. the noise model chosen by likelihood at that optimum (the gain from the noise levels: the
        encoders' quantization is known, the torque disturbance and its share on the load estimated);
     3. the least squares again with it. Intervals: the Newey–West covariance of that fit.
+
+    Terms: every term of ``start.terms`` is a coordinate. After the continuation a term within a standard
+    error of 0 is held
+    there (none with ``keep_all``); the result keeps a term by its Wald statistic on the final fit
+    (``terms`` and ``selection`` say which; ``keep_all``: every term still free).
 
     Deterministic: fixed starts and grids, Jacobian columns computed one by one (threads only share
     them out), so the answer is a smooth function of the record.
@@ -517,6 +522,12 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
                 z = _epsilon_profile(obj, z, float(hi[6]), pool)
             z, res = _least_squares(obj, z, free, lo, hi, scale, steps, pool, _CONTINUATION_NFEV, _CONTINUATION_TOL)
             calls += obj.calls
+        # the terms the continuation's optimum supports; the others held at 0 from here (a spurious term
+        # absorbs what a slightly wrong basin leaves and moves ε with it)
+        for term, sel in _term_selection(obj, z, res, free, problem.sample_rate_hz, _TERM_HOLD).items():
+            if not (sel["kept"] or keep_all):
+                i = obj.names.index(_TERM_COORDINATE[term])
+                z[i], free[i] = 0.0, False
         if z[6] < _EPSILON_ZERO_DEG:
             # a gap this small is none: held at 0, where the predictor has no events to locate (a free ε
             # near 0 switches mode at every zero crossing of the twist and the fit crawls there)
@@ -539,5 +550,42 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
         calls += obj.calls
     inn = obj.innovations(z)
     n_eff = _n_effective(inn.normalized[:, 0]) if inn is not None else float(np.asarray(res.fun).size)  # type: ignore[attr-defined]
-    return _result(obj, z, res, n_eff, calls, free, selection=start.selection, process_noise_nm=obj.process_noise_nm,
+    selection = _term_selection(obj, z, res, free, problem.sample_rate_hz)
+    if keep_all:
+        selection = {t: {**v, "kept": bool(free[obj.names.index(_TERM_COORDINATE[t])])} for t, v in selection.items()}
+    fit_ = _result(obj, z, res, n_eff, calls, free, selection={**start.selection, **selection}, process_noise_nm=obj.process_noise_nm,
                    load_share=obj.load_share, innovations=inn, epsilon_profile_deg=interval)
+    return replace(fit_, terms=ModelTerms(**{t: bool(selection.get(t, {}).get("kept", False))
+                                             for t in _TERM_COORDINATE}))
+
+
+#: A current-loop time constant below this share of the sample period is none (no record resolves it).
+_LAG_NEGLIGIBLE = 0.1
+#: Wald statistic below which a term is held at 0 after the continuation (within a standard error of it);
+#: the final fit's terms are then kept by the BIC's threshold, ln n_eff.
+_TERM_HOLD = 1.0
+
+
+def _term_selection(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, free: NDArray[np.bool_],
+                    sample_rate_hz: float, threshold: float | None = None) -> dict[str, dict[str, Any]]:
+    """Per candidate term of a least squares over the ``free`` coordinates: its Wald statistic
+    z² = (value/σ)², the threshold (default ln n_eff, the BIC's price of a parameter) and whether it is
+    kept (free, above it, and a current loop slower than ``_LAG_NEGLIGIBLE`` of a sample)."""
+    r, J = np.asarray(res.fun), np.asarray(res.jac)
+    cov = np.zeros((z.size, z.size))
+    try:
+        cov[np.ix_(free, free)] = _covariance(J, r)
+    except np.linalg.LinAlgError:
+        cov[np.ix_(free, free)] = math.nan
+    if threshold is None:
+        threshold = math.log(max(_n_effective(r[::obj.kp.outputs]), 2.0))
+    out: dict[str, dict[str, Any]] = {}
+    for term, name in _TERM_COORDINATE.items():
+        if name not in obj.names:
+            continue
+        i = obj.names.index(name)
+        v, se = float(z[i]), math.sqrt(max(float(cov[i, i]), 0.0)) if math.isfinite(cov[i, i]) else math.inf
+        z2 = (v / se) ** 2 if se > 0 else (math.inf if v > 0 else 0.0)
+        seen = not (name == "T_c_us" and v < _LAG_NEGLIGIBLE * 1e6 / sample_rate_hz)
+        out[term] = {"z2": float(z2), "threshold": threshold, "kept": bool(free[i] and z2 > threshold and seen)}
+    return out

@@ -8,10 +8,12 @@
 2. ``scan``  — (ε, damping split) cells on the projected torque residual, J_m, B_m, J_l and the
    motor-side columns solved linearly in each (:mod:`commission.ident.scan`).
 3. ``fit``   — the start's refinement: prediction-error least squares of every parameter and the
-   candidate terms from the best cell, on the torque residual with a load-state observer; terms
-   kept by their Wald statistic (:func:`commission.ident.estimator.fit`).
+   candidate terms from the best cell, on the torque residual with a load-state observer
+   (:func:`commission.ident.estimator.fit`).
 4. ``kalman`` — **the estimate**: prediction errors of the Kalman predictor of the whole state, its
-   noise model chosen by likelihood (:func:`commission.ident.estimator.kalman_fit`).
+   noise model chosen by likelihood (:func:`commission.ident.estimator.kalman_fit`); terms kept by
+   their Wald statistic on it. When its noise model needs more than 1 % of the torque, again from it
+   with every configured term, kept if the BIC prefers it.
 5. ``restarts`` — only when the estimate leaves model error: stages 2–4 again from stiffer starts,
    the most likely estimate kept.
 6. ``check`` — prediction errors, intervals: approximate and why
@@ -58,6 +60,7 @@ _QUANTIZATION_TARGET = 2.5
 #: Torque disturbance (relative to RMS τ_ref) of the estimate's noise model above which the stiffer starts
 #: are tried too: the most likely estimate is kept, so a noisy record only pays their time.
 _RESTART_DISTURBANCE = 0.01
+_TERMS = ("coulomb_motor", "coulomb_load", "current_loop")
 #: Stiffness factors of the further starts when the first fit leaves model error (:func:`_stiffer_starts`).
 _STIFFER_STARTS = (1.7, 3.0)
 
@@ -414,7 +417,11 @@ def _model_error(run: _Run, pem: PemFit) -> bool:
     from .assess import assess
 
     q = assess(pem, torque_rms_nm=_torque_rms(run), sample_rate_hz=run.fs)
-    return q.model_error or (q.process_noise_ratio or 0.0) > _RESTART_DISTURBANCE
+    return q.model_error or _needs_disturbance(run, pem)
+
+
+def _needs_disturbance(run: _Run, pem: PemFit) -> bool:
+    return pem.process_noise_nm > _RESTART_DISTURBANCE * _torque_rms(run)
 
 
 def _torque_rms(run: _Run) -> float:
@@ -483,7 +490,20 @@ def _kalman_stage(run: _Run, start: PemFit) -> PemFit:
     eps_max = max(run.epsilon_max_rad, 2.0 * start.epsilon_rad)
     if not math.isfinite(eps_max):
         eps_max = math.radians(2.0 * run.opt.epsilon_bounds_deg[1])
-    return kalman_fit(kp, start, epsilon_max_rad=eps_max, threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations)
+    keep_all = run.opt.term_selection == "keep_all"
+    kw = dict(epsilon_max_rad=eps_max, threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations, keep_all=keep_all)
+    pem = kalman_fit(kp, start, **kw)
+    # the torque-residual fit's term selection can miss friction the Kalman fit then needs a large
+    # disturbance for (22:038, 22:049): from this estimate again with every configured term, kept when the
+    # likelihood gain pays for the parameters added (the BIC)
+    candidates = ModelTerms(**{t: t in run.opt.model_terms for t in _TERMS})
+    if candidates.names() == pem.terms.names() or not _needs_disturbance(run, pem):
+        return pem
+    other = kalman_fit(kp, replace(pem, terms=candidates), **kw)
+    added = len(candidates.names()) - len(pem.terms.names())
+    gain = (_likelihood_cost(pem) - _likelihood_cost(other)) * (len(kp.motor_position) - 1) * kp.outputs
+    best = other if gain > 0.5 * added * math.log(other.n_effective) else pem
+    return replace(best, evaluations=pem.evaluations + other.evaluations)
 
 
 def _check_stage(run: _Run, cell: Any, pem: PemFit) -> tuple[FitQuality, list[dict[str, float]]]:
