@@ -242,6 +242,17 @@ def _covariance(J: NDArray[np.float64], r: NDArray[np.float64]) -> NDArray[np.fl
     return (n / max(n - p, 1)) * Hinv @ S @ Hinv
 
 
+def _held_covariance(res: Any, free: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """The Newey–West covariance of a least squares over the ``free`` coordinates, in the full coordinates
+    (a held one has no variance of its own; NaN where the Jacobian is singular)."""
+    cov = np.zeros((free.size, free.size))
+    try:
+        cov[np.ix_(free, free)] = _covariance(np.asarray(res.jac), np.asarray(res.fun))
+    except np.linalg.LinAlgError:
+        cov[np.ix_(free, free)] = math.nan
+    return cov
+
+
 def fit(problem: ResidualProblem, start: TwoMassParameters, epsilon_rad: float, terms: ModelTerms,
         observer: Observer, *, coulomb_motor_nm: float = 0.0, coulomb_load_nm: float = 0.0, lag_s: float = 0.0,
         epsilon_max_rad: float,
@@ -293,13 +304,8 @@ def _result(obj: _Objective, z: NDArray[np.float64], res: Any, n_effective: floa
             free: NDArray[np.bool_] | None = None, **fields: Any) -> PemFit:
     """The :class:`PemFit` of a least squares' optimum ``z`` over its ``free`` coordinates (default: all;
     its Newey–West covariance from ``res``)."""
-    r, J = np.asarray(res.fun), np.asarray(res.jac)
-    free = np.ones(z.size, dtype=bool) if free is None else free
-    cov = np.zeros((z.size, z.size))  # a held coordinate has no variance of its own
-    try:
-        cov[np.ix_(free, free)] = _covariance(J, r)
-    except np.linalg.LinAlgError:
-        cov[np.ix_(free, free)] = math.nan
+    r = np.asarray(res.fun)
+    cov = _held_covariance(res, np.ones(z.size, dtype=bool) if free is None else free)
     p, eps, extra = obj.unpack(z)
     return PemFit(parameters=p, epsilon_rad=eps, coulomb_motor_nm=extra.get("F_cm", 0.0),
                   coulomb_load_nm=extra.get("F_cl", 0.0), lag_s=1e-6 * extra.get("T_c_us", 0.0), terms=obj.terms,
@@ -496,9 +502,8 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
     3. the least squares again with it. Intervals: the Newey–West covariance of that fit.
 
     Terms: every term of ``start.terms`` is a coordinate. After the continuation a term within a standard
-    error of 0 is held
-    there (none with ``keep_all``); the result keeps a term by its Wald statistic on the final fit
-    (``terms`` and ``selection`` say which; ``keep_all``: every term still free).
+    error of 0 is held there (none with ``keep_all``); the result keeps a term by its Wald statistic on
+    the final fit (``terms`` and ``selection`` say which; ``keep_all``: every term still free).
 
     Deterministic: fixed starts and grids, Jacobian columns computed one by one (threads only share
     them out), so the answer is a smooth function of the record.
@@ -571,12 +576,8 @@ def _term_selection(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, fre
     """Per candidate term of a least squares over the ``free`` coordinates: its Wald statistic
     z² = (value/σ)², the threshold (default ln n_eff, the BIC's price of a parameter) and whether it is
     kept (free, above it, and a current loop slower than ``_LAG_NEGLIGIBLE`` of a sample)."""
-    r, J = np.asarray(res.fun), np.asarray(res.jac)
-    cov = np.zeros((z.size, z.size))
-    try:
-        cov[np.ix_(free, free)] = _covariance(J, r)
-    except np.linalg.LinAlgError:
-        cov[np.ix_(free, free)] = math.nan
+    r = np.asarray(res.fun)
+    cov = _held_covariance(res, free)
     if threshold is None:
         threshold = math.log(max(_n_effective(r[::obj.kp.outputs]), 2.0))
     out: dict[str, dict[str, Any]] = {}

@@ -32,7 +32,7 @@ import functools
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -60,7 +60,6 @@ _QUANTIZATION_TARGET = 2.5
 #: Torque disturbance (relative to RMS τ_ref) of the estimate's noise model above which the stiffer starts
 #: are tried too: the most likely estimate is kept, so a noisy record only pays their time.
 _RESTART_DISTURBANCE = 0.01
-_TERMS = ("coulomb_motor", "coulomb_load", "current_loop")
 #: Stiffness factors of the further starts when the first fit leaves model error (:func:`_stiffer_starts`).
 _STIFFER_STARTS = (1.7, 3.0)
 
@@ -496,7 +495,7 @@ def _kalman_stage(run: _Run, start: PemFit) -> PemFit:
     # the torque-residual fit's term selection can miss friction the Kalman fit then needs a large
     # disturbance for (22:038, 22:049): from this estimate again with every configured term, kept when the
     # likelihood gain pays for the parameters added (the BIC)
-    candidates = ModelTerms(**{t: t in run.opt.model_terms for t in _TERMS})
+    candidates = ModelTerms(**{f.name: f.name in run.opt.model_terms for f in fields(ModelTerms)})
     if candidates.names() == pem.terms.names() or not _needs_disturbance(run, pem):
         return pem
     other = kalman_fit(kp, replace(pem, terms=candidates), **kw)

@@ -292,6 +292,18 @@ def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, 
     return events
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _set_valued_friction(xe: NDArray[np.float64], Gam: NDArray[np.float64], velocity: int, column: int,
+                         F: float) -> float:
+    """The Coulomb force [N·m] of the set-valued sign at the interval's end velocity ``xe[velocity]``
+    (backward Euler: it never reverses the mass within the sample, and holds it when it can), added to
+    the predicted state ``xe`` through the friction's column of Γ."""
+    f = min(max(xe[velocity] / (-Gam[velocity, column] * F), -1.0), 1.0) * F
+    for i in range(xe.size):
+        xe[i] += Gam[i, column] * f
+    return f
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.float64], fm: NDArray[np.float64],
             measured: NDArray[np.bool_], Fcm: float, Fcl: float, eps: float, Ts: float,
@@ -329,18 +341,9 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
             xe[i] = a
         if Fcm > 0.0 and fm[k] == 0.0:
             # the encoder did not move: the motor's friction as the load's, set-valued at the end velocity
-            f = xe[1] / (-Gam[m, 1, 2] * Fcm)
-            f = min(max(f, -1.0), 1.0)
-            u[2] = Fcm * f
-            for i in range(n):
-                xe[i] += Gam[m, i, 2] * u[2]
+            u[2] = _set_valued_friction(xe, Gam[m], 1, 2, Fcm)
         if Fcl > 0.0:
-            # load friction: the set-valued sign at the interval's end velocity
-            f = xe[3] / (-Gam[m, 3, 3] * Fcl)
-            f = min(max(f, -1.0), 1.0)
-            u[3] = Fcl * f
-            for i in range(n):
-                xe[i] += Gam[m, i, 3] * u[3]
+            u[3] = _set_valued_friction(xe, Gam[m], 3, 3, Fcl)
         switch = False
         if eps > 0.0:
             switch = _region(xe[2], eps) != reg
