@@ -240,14 +240,21 @@ def _crossing(V: NDArray[np.complex128], lam: NDArray[np.complex128], z0: NDArra
 @njit(cache=True, nogil=True, error_model="numpy")
 def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, Ts: float,
                     V: NDArray[np.complex128], lam: NDArray[np.complex128], Vi: NDArray[np.complex128],
-                    Bc: NDArray[np.float64]) -> int:
+                    Bc: NDArray[np.float64], jump: NDArray[np.float64], M: NDArray[np.float64]) -> int:
     """Propagate x over Ts in place, locating each mode switch (x(t) = V·(e^{λt}·z₀ + φ(λ,t)·c));
-    returns the number of switches."""
+    returns the number of switches. ``M`` (n × n) becomes the flow's linearization over the sample: each
+    mode's transition matrix over its part, and at each switch the saltation matrix I ± jump·e_sᵀ (the
+    damper's force jumps at contact, so a twist error moves the switch time and the velocities with it)."""
     n = x.size
     t_left = Ts
     events = 0
     z0 = np.empty(n, dtype=np.complex128)
     c = np.empty(n, dtype=np.complex128)
+    W = np.empty((n, n))
+    W2 = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            M[i, j] = 1.0 if i == j else 0.0
     for _ in range(16):
         reg = _region(x[2], eps)
         m = 0 if reg == 0 else 1
@@ -283,8 +290,28 @@ def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, 
                 ph = t * (1.0 + 0.5 * a) if abs(a) < 1e-8 else (np.exp(a) - 1.0) / lam[m, k]
                 acc += (V[m, i, k] * (np.exp(a) * z0[k] + ph * c[k])).real
             x[i] = acc
+        # M ← Φ_m(t)·M, Φ_m(t) = V·e^{Λt}·V⁻¹
+        for i in range(n):
+            for j in range(n):
+                acc = 0.0
+                for k in range(n):
+                    acc += (V[m, i, k] * np.exp(lam[m, k] * t) * Vi[m, k, j]).real
+                W[i, j] = acc
+        for i in range(n):
+            for j in range(n):
+                acc = 0.0
+                for k in range(n):
+                    acc += W[i, k] * M[k, j]
+                W2[i, j] = acc
+        M[:, :] = W2
         if tc < 0:
             break
+        # saltation: into contact +jump·e_sᵀ, out of it −jump·e_sᵀ (the spring's force is continuous there)
+        sign = 1.0 if reg == 0 else -1.0
+        for i in range(n):
+            if jump[i] != 0.0:
+                for j in range(n):
+                    M[i, j] += sign * jump[i] * M[2, j]
         events += 1
         t_left -= tc
         if t_left <= 1e-12 * Ts:
@@ -309,14 +336,15 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
             measured: NDArray[np.bool_], Fcm: float, Fcl: float, eps: float, Ts: float,
             Phi: NDArray[np.float64], Gam: NDArray[np.float64], PhiH: NDArray[np.float64], GamH: NDArray[np.float64],
             V: NDArray[np.complex128], lam: NDArray[np.complex128], Vi: NDArray[np.complex128],
-            Bc: NDArray[np.float64], Q: NDArray[np.float64], R: NDArray[np.float64], x0: NDArray[np.float64],
-            P0: NDArray[np.float64], e: NDArray[np.float64], S_out: NDArray[np.float64]) -> int:
+            Bc: NDArray[np.float64], jump: NDArray[np.float64], Q: NDArray[np.float64], R: NDArray[np.float64],
+            x0: NDArray[np.float64], P0: NDArray[np.float64], e: NDArray[np.float64], S_out: NDArray[np.float64]) -> int:
     N = y.size
     n = x0.size
     nout = e.shape[1]
     x = x0.copy()
     P = P0.copy()
     T = np.empty((n, n))
+    Msw = np.empty((n, n))
     xe = np.empty(n)
     u = np.zeros(4)
     g = np.empty(n)
@@ -361,7 +389,7 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
             for i in range(n):
                 xe[i] = x[i]
             # (the load friction as the interval's plain prediction set it: continuous across the switch)
-            events += _switching_step(xe, u, eps, Ts, V, lam, Vi, Bc)
+            events += _switching_step(xe, u, eps, Ts, V, lam, Vi, Bc, jump, Msw)
         for i in range(n):
             x[i] = xe[i]
         if steady and m == 1 and not switch and measured[k + 1]:
@@ -373,18 +401,19 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
                 for i in range(n):
                     x[i] += G_st[o, i] * innov
             continue
-        # P ← Φ P Φᵀ + Q in the interval's starting mode
+        # P ← F P Fᵀ + Q: F the interval's mode's Φ, or across a switch the saltated flow's linearization
+        F = Msw if switch else Phi[m]
         for i in range(n):
             for j in range(n):
                 acc = 0.0
                 for l in range(n):
-                    acc += Phi[m, i, l] * P[l, j]
+                    acc += F[i, l] * P[l, j]
                 T[i, j] = acc
         for i in range(n):
             for j in range(i, n):
                 acc = Q[m, i, j]
                 for l in range(n):
-                    acc += T[i, l] * Phi[m, j, l]
+                    acc += T[i, l] * F[j, l]
                 P[i, j] = acc
                 P[j, i] = acc
         if not measured[k + 1]:
@@ -452,11 +481,14 @@ def innovations(problem: KalmanProblem, params: TwoMassParameters, epsilon_rad: 
     if pr.load_position is not None:
         x0[2] = pr.motor_position[0] - pr.load_position[0]
         P0[2, 2] = R[0] + R[1]
+    # the damper's force D·(v_m − v_l) per twist rate, on each velocity: what jumps at contact
+    jump = np.zeros(n)
+    jump[1], jump[3] = -params.D / params.J_m, params.D / params.J_l
     e = np.zeros((pr.motor_position.size - 1, pr.outputs))
     S = np.ones_like(e)
     events = _filter(pr.torque_ref, pr.motor_position, yl, pr.motor_friction, pr.measured, float(coulomb_motor_nm),
                      float(coulomb_load_nm), float(epsilon_rad), Ts, model.Phi, model.Gam,
-                     model.PhiH, model.GamH, model.V, model.lam, model.Vi, model.B, model.Q, R, x0, P0, e, S)
+                     model.PhiH, model.GamH, model.V, model.lam, model.Vi, model.B, jump, model.Q, R, x0, P0, e, S)
     S = S / R[None, :]
     return Innovations(error=e / np.sqrt(R)[None, :], normalized=e / np.sqrt(R)[None, :] / np.sqrt(S),
                        log_variance=np.log(S), events=int(events))
