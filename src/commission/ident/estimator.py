@@ -470,6 +470,35 @@ def _nll(obj: _KalmanObjective, z: NDArray[np.float64]) -> float:
     return inn.negative_log_likelihood() if inn is not None else math.inf
 
 
+def _hold(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, free: NDArray[np.bool_], sample_rate_hz: float,
+          keep_all: bool) -> None:
+    """Hold at 0, in place, what the continuation's optimum does not support: a term within a standard
+    error of 0 (a spurious term absorbs what a slightly wrong basin leaves and moves ε with it; every
+    term stays with ``keep_all``), and a gap below ``_EPSILON_ZERO_DEG`` (a free ε near 0 switches mode
+    at every zero crossing of the twist and the fit crawls there)."""
+    for term, sel in _term_selection(obj, z, res, free, sample_rate_hz, _TERM_HOLD).items():
+        if not (sel["kept"] or keep_all):
+            i = obj.names.index(_TERM_COORDINATE[term])
+            z[i], free[i] = 0.0, False
+    if z[6] < _EPSILON_ZERO_DEG:
+        z[6], free[6] = 0.0, False
+
+
+def _polished(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, top_deg: float,
+              ls: Callable[[_KalmanObjective, NDArray[np.float64], int], tuple[NDArray[np.float64], Any]],
+              max_nfev: int, pool: ThreadPoolExecutor) -> tuple[NDArray[np.float64], Any, tuple[float, float]]:
+    """ε's likelihood is rugged at this scale (grazing contacts come and go): the best of a fine profile
+    around the optimum, and the interval the likelihood ratio gives on it; the profile's local minima
+    start the final fit again, the lowest cost kept. Returns (z, its least squares, the interval [deg])."""
+    starts, interval = _epsilon_polish(obj, z, top_deg, pool)
+    for s in starts:
+        if s[6] != z[6]:
+            zs, rs = ls(obj, s, max_nfev)
+            if float(np.sum(np.asarray(rs.fun) ** 2)) < float(np.sum(np.asarray(res.fun) ** 2)):
+                z, res = zs, rs
+    return z, res, interval
+
+
 def _armed(obj: _KalmanObjective, z: NDArray[np.float64]) -> _KalmanObjective:
     """``obj`` with its divergence plateau set far above its residual at ``z``."""
     v0 = obj(z)
@@ -524,22 +553,17 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
     """The prediction-error estimate with the Kalman predictor of the whole state, from ``start``
     (its parameters, ε, terms and their values).
 
-    Each least squares maximises the likelihood of the prediction errors with the noise's scale
-    concentrated out (:meth:`_KalmanObjective.__call__`).
+    1. continuation (``_CONTINUATION``): the Cauchy likelihood's least squares with a predictor that
+       assumes a large torque disturbance (wide basin; ε profiled there), then one that trusts the model;
+    2. the noise model chosen by likelihood there (encoders' quantization known; the torque disturbance
+       and its share on the load estimated), and the least squares of the Gaussian likelihood, the
+       noise's scale concentrated out (:meth:`_KalmanObjective.__call__`), sharpened again while its
+       noise model needs more than ``_SHARPEN_ABOVE``; intervals: its Newey–West covariance.
 
-    1. continuation (``_CONTINUATION``): least squares of the prediction errors with a predictor that
-       assumes a large torque disturbance — it follows the record, so its basin is wide, and ε is
-       profiled there — then with one that trusts the model (a sharp minimum);
-    2. the noise model chosen by likelihood at that optimum (the gain from the noise levels: the
-       encoders' quantization is known, the torque disturbance and its share on the load estimated);
-    3. the least squares again with it. Intervals: the Newey–West covariance of that fit.
-
-    Terms: every term of ``start.terms`` is a coordinate. After the continuation a term within a standard
-    error of 0 is held there (none with ``keep_all``); the result keeps a term by its Wald statistic on
-    the final fit (``terms`` and ``selection`` say which; ``keep_all``: every term still free).
-
-    Deterministic: fixed starts and grids, Jacobian columns computed one by one (threads only share
-    them out), so the answer is a smooth function of the record.
+    Terms: each of ``start.terms`` is a coordinate; after the continuation one within a standard error of
+    0 is held there (none with ``keep_all``); the result keeps a term by its Wald statistic on the final
+    fit (``terms`` and ``selection`` say which). Deterministic: fixed starts and grids, Jacobian columns
+    computed one by one (threads only share them out): a smooth function of the record.
     """
     ref = problem.torque_rms_nm
     terms = start.terms
@@ -552,28 +576,29 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
     calls = 0
     free = np.ones(z.size, dtype=bool)
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        def ls(o: _KalmanObjective, z0: NDArray[np.float64], nfev: int, tol: float = _KALMAN_TOL) -> tuple[
+                NDArray[np.float64], Any]:
+            return _least_squares(o, z0, free, lo, hi, scale, steps, pool, nfev, tol)
+
+        def settle(z0: NDArray[np.float64]) -> tuple[_KalmanObjective, NDArray[np.float64], Any]:
+            """The noise model of the largest likelihood at ``z0``, and the least squares with it."""
+            nonlocal calls
+            level, share = _noise_level(lambda lv, sh: objective(lv, sh).innovations(z0), pool)
+            calls += len(_PROCESS_NOISE_GRID) * len(_LOAD_SHARES)
+            o = _armed(objective(level, share), z0)
+            return (o, *ls(o, z0, max_nfev))
+
         # continuation: a predictor that follows the record (wide basin, where ε is profiled), then one
         # that trusts the model (sharp minimum; a profile there could jump to a neighbouring valley)
         for level in _CONTINUATION:
             obj = _armed(objective(level, robust=_ROBUST_CONTINUATION), z)
             if level == _CONTINUATION[0] and z[6] > 0 and _PROFILE_FIRST:
                 z = _epsilon_profile(obj, z, float(hi[6]), pool)
-            z, res = _least_squares(obj, z, free, lo, hi, scale, steps, pool, _CONTINUATION_NFEV, _CONTINUATION_TOL)
+            z, res = ls(obj, z, _CONTINUATION_NFEV, _CONTINUATION_TOL)
             calls += obj.calls
-        # the terms the continuation's optimum supports; the others held at 0 from here (a spurious term
-        # absorbs what a slightly wrong basin leaves and moves ε with it)
-        for term, sel in _term_selection(obj, z, res, free, problem.sample_rate_hz, _TERM_HOLD).items():
-            if not (sel["kept"] or keep_all):
-                i = obj.names.index(_TERM_COORDINATE[term])
-                z[i], free[i] = 0.0, False
-        if z[6] < _EPSILON_ZERO_DEG:
-            # a gap this small is none: held at 0, where the predictor has no events to locate (a free ε
-            # near 0 switches mode at every zero crossing of the twist and the fit crawls there)
-            z[6], free[6] = 0.0, False
-        level, share = _noise_level(lambda lv, sh: objective(lv, sh).innovations(z), pool)
-        calls += len(_PROCESS_NOISE_GRID) * len(_LOAD_SHARES)
-        obj = _armed(objective(level, share), z)
-        z, res = _least_squares(obj, z, free, lo, hi, scale, steps, pool, max_nfev)
+        _hold(obj, z, res, free, problem.sample_rate_hz, keep_all)
+        obj, z, res = settle(z)
+        share = obj.load_share
         for _ in range(_SHARPEN_ROUNDS):
             # a noise model that needs a large disturbance flattens the likelihood: the fit may have stopped
             # in a neighbouring basin; sharpened again from there (the Cauchy likelihood at the smallest
@@ -581,12 +606,9 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
             if obj.process_noise_nm <= _SHARPEN_ABOVE * ref:
                 break
             sharp = _armed(objective(_CONTINUATION[-1], share, robust=True), z)
-            z2, _ = _least_squares(sharp, z, free, lo, hi, scale, steps, pool, _CONTINUATION_NFEV, _CONTINUATION_TOL)
+            z2 = ls(sharp, z, _CONTINUATION_NFEV, _CONTINUATION_TOL)[0]
             calls += sharp.calls
-            level2, share2 = _noise_level(lambda lv, sh: objective(lv, sh).innovations(z2), pool)
-            calls += len(_PROCESS_NOISE_GRID) * len(_LOAD_SHARES)
-            obj2 = _armed(objective(level2, share2), z2)
-            z2, res2 = _least_squares(obj2, z2, free, lo, hi, scale, steps, pool, max_nfev)
+            obj2, z2, res2 = settle(z2)
             if not _nll(obj2, z2) < _nll(obj, z):
                 calls += obj2.calls
                 break
@@ -594,15 +616,7 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
             obj, z, res = obj2, z2, res2
         interval = None
         if z[6] > 0:
-            # ε's likelihood is rugged at this scale (grazing contacts come and go): the best of a fine
-            # profile around the optimum, and the interval the likelihood ratio gives on it
-            # its local minima are the final fit's starts too: the lowest cost is kept
-            starts, interval = _epsilon_polish(obj, z, float(hi[6]), pool)
-            for s in starts:
-                if s[6] != z[6]:
-                    zs, rs = _least_squares(obj, s, free, lo, hi, scale, steps, pool, max_nfev)
-                    if float(np.sum(np.asarray(rs.fun) ** 2)) < float(np.sum(np.asarray(res.fun) ** 2)):  # type: ignore[attr-defined]
-                        z, res = zs, rs
+            z, res, interval = _polished(obj, z, res, float(hi[6]), ls, max_nfev, pool)
         calls += obj.calls
     inn = obj.innovations(z)
     n_eff = _n_effective(inn.normalized[:, 0]) if inn is not None else float(np.asarray(res.fun).size)  # type: ignore[attr-defined]
