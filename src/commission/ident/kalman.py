@@ -237,6 +237,18 @@ def _crossing(V: NDArray[np.complex128], lam: NDArray[np.complex128], z0: NDArra
     return t1
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _product(A: NDArray[np.float64], B: NDArray[np.float64], out: NDArray[np.float64]) -> None:
+    """out ← A·B for small square matrices (summed in a fixed order: the same bits on every machine)."""
+    n = out.shape[0]
+    for i in range(n):
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += A[i, k] * B[k, j]
+            out[i, j] = acc
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, Ts: float,
                     V: NDArray[np.complex128], lam: NDArray[np.complex128], Vi: NDArray[np.complex128],
@@ -297,12 +309,7 @@ def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, 
                 for k in range(n):
                     acc += (V[m, i, k] * np.exp(lam[m, k] * t) * Vi[m, k, j]).real
                 W[i, j] = acc
-        for i in range(n):
-            for j in range(n):
-                acc = 0.0
-                for k in range(n):
-                    acc += W[i, k] * M[k, j]
-                W2[i, j] = acc
+        _product(W, M, W2)
         M[:, :] = W2
         if tc < 0:
             break
@@ -403,12 +410,7 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
             continue
         # P ← F P Fᵀ + Q: F the interval's mode's Φ, or across a switch the saltated flow's linearization
         F = Msw if switch else Phi[m]
-        for i in range(n):
-            for j in range(n):
-                acc = 0.0
-                for l in range(n):
-                    acc += F[i, l] * P[l, j]
-                T[i, j] = acc
+        _product(F, P, T)
         for i in range(n):
             for j in range(i, n):
                 acc = Q[m, i, j]
