@@ -345,8 +345,8 @@ _CONTINUATION = (1e-2, 1e-3)
 #: basin around the truth is wide where the Gaussian one is a needle; the final fit is Gaussian.
 _ROBUST_CONTINUATION = True
 #: Torque disturbance (relative to RMS τ_ref) of the final noise model above which the fit is sharpened
-#: again from its estimate, at most this many rounds: above a drive's torque noise (the family's
-#: noisiest records need ~1 %), where the wrong basins of the first 50 needed 3–6 %.
+#: again from its estimate, at most this many rounds: above a drive's own torque noise, below what the
+#: family's wrong basins needed (both measured in bench/results/family.md).
 _SHARPEN_ABOVE = 2e-2
 _SHARPEN_ROUNDS = 2
 #: ... and the levels the noise model is chosen among by likelihood at the first fit's optimum.
@@ -599,6 +599,7 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
         _hold(obj, z, res, free, problem.sample_rate_hz, keep_all)
         obj, z, res = settle(z)
         share = obj.load_share
+        nll = math.nan  # the current estimate's, computed once and carried from round to round
         for _ in range(_SHARPEN_ROUNDS):
             # a noise model that needs a large disturbance flattens the likelihood: the fit may have stopped
             # in a neighbouring basin; sharpened again from there (the Cauchy likelihood at the smallest
@@ -609,11 +610,13 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
             z2 = ls(sharp, z, _CONTINUATION_NFEV, _CONTINUATION_TOL)[0]
             calls += sharp.calls
             obj2, z2, res2 = settle(z2)
-            if not _nll(obj2, z2) < _nll(obj, z):
+            nll = _nll(obj, z) if math.isnan(nll) else nll
+            nll2 = _nll(obj2, z2)
+            if not nll2 < nll:
                 calls += obj2.calls
                 break
             calls += obj.calls
-            obj, z, res = obj2, z2, res2
+            obj, z, res, nll = obj2, z2, res2, nll2
         interval = None
         if z[6] > 0:
             z, res, interval = _polished(obj, z, res, float(hi[6]), ls, max_nfev, pool)

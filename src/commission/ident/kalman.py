@@ -262,6 +262,8 @@ def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, 
     events = 0
     z0 = np.empty(n, dtype=np.complex128)
     c = np.empty(n, dtype=np.complex128)
+    ek = np.empty(n, dtype=np.complex128)
+    phk = np.empty(n, dtype=np.complex128)
     W = np.empty((n, n))
     W2 = np.empty((n, n))
     for i in range(n):
@@ -295,19 +297,21 @@ def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, 
                 break
             t_prev, s_prev = tj, sj
         t = t_left if tc < 0 else tc
+        for k in range(n):  # e^{λt} and φ(λ,t) once per segment: the state and the flow map share them
+            a = lam[m, k] * t
+            ek[k] = np.exp(a)
+            phk[k] = t * (1.0 + 0.5 * a) if abs(a) < 1e-8 else (ek[k] - 1.0) / lam[m, k]
         for i in range(n):
             acc = 0.0
             for k in range(n):
-                a = lam[m, k] * t
-                ph = t * (1.0 + 0.5 * a) if abs(a) < 1e-8 else (np.exp(a) - 1.0) / lam[m, k]
-                acc += (V[m, i, k] * (np.exp(a) * z0[k] + ph * c[k])).real
+                acc += (V[m, i, k] * (ek[k] * z0[k] + phk[k] * c[k])).real
             x[i] = acc
         # M ← Φ_m(t)·M, Φ_m(t) = V·e^{Λt}·V⁻¹
         for i in range(n):
             for j in range(n):
                 acc = 0.0
                 for k in range(n):
-                    acc += (V[m, i, k] * np.exp(lam[m, k] * t) * Vi[m, k, j]).real
+                    acc += (V[m, i, k] * ek[k] * Vi[m, k, j]).real
                 W[i, j] = acc
         _product(W, M, W2)
         M[:, :] = W2
