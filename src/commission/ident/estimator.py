@@ -317,6 +317,8 @@ def _result(obj: _Objective, z: NDArray[np.float64], res: Any, n_effective: floa
 
 
 _TERM_COORDINATE = {"coulomb_motor": "F_cm", "coulomb_load": "F_cl", "current_loop": "T_c_us"}
+#: The dampings' coordinates (B_m, B_l, D): logarithms, held where they stand when not determined.
+_DAMPINGS = (2, 3, 5)
 
 
 def significant_terms(result: PemFit, *, keep_all: bool = False) -> tuple[ModelTerms, dict[str, dict[str, Any]]]:
@@ -476,12 +478,26 @@ def _hold(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, free: NDArray
     error of 0 (a spurious term absorbs what a slightly wrong basin leaves and moves ε with it; every
     term stays with ``keep_all``), and a gap below ``_EPSILON_ZERO_DEG`` (a free ε near 0 switches mode
     at every zero crossing of the twist and the fit crawls there)."""
-    for term, sel in _term_selection(obj, z, res, free, sample_rate_hz, _TERM_HOLD).items():
+    selection = _term_selection(obj, z, res, free, sample_rate_hz, _TERM_HOLD)
+    _hold_dampings(res, free)
+    for term, sel in selection.items():
         if not (sel["kept"] or keep_all):
             i = obj.names.index(_TERM_COORDINATE[term])
             z[i], free[i] = 0.0, False
     if z[6] < _EPSILON_ZERO_DEG:
         z[6], free[6] = 0.0, False
+
+
+def _hold_dampings(res: Any, free: NDArray[np.bool_]) -> bool:
+    """Hold, in place, a damping within a standard error of 0 where it stands (B/σ_B = 1/σ of ln B, so
+    σ(ln B) > 1): on its log scale the fit would crawl toward 0 without end (a light load's B_l trades
+    with B_m). Returns whether one was held; ``res`` is the least squares over ``free`` as it was."""
+    cov = _held_covariance(res, free)
+    held = False
+    for i in _DAMPINGS:
+        if free[i] and not cov[i, i] <= _TERM_HOLD:
+            free[i], held = False, True
+    return held
 
 
 def _polished(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, top_deg: float,
@@ -617,6 +633,8 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
                 break
             calls += obj.calls
             obj, z, res, nll = obj2, z2, res2, nll2
+        if not res.status > 0 and _hold_dampings(res, free):
+            z, res = ls(obj, z, max_nfev)  # what stopped it may be a damping crawling toward 0
         interval = None
         if z[6] > 0:
             z, res, interval = _polished(obj, z, res, float(hi[6]), ls, max_nfev, pool)
