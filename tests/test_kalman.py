@@ -154,3 +154,25 @@ def test_the_covariance_crosses_a_contact_with_the_dampers_jump() -> None:
     assert inn is not None and inn.events > 1000  # impact-rich: the case this test is about
     assert 0.7 < _rms(inn.normalized) < 1.3
     assert np.max(np.abs(inn.normalized)) < 6.0
+
+
+
+
+def test_a_damping_the_record_does_not_determine_does_not_keep_the_fit_from_converging() -> None:
+    # a load 1/5 of the motor, no gap: B_l trades with B_m (the record determines their sum); from a start
+    # with B_l at 5 % of the truth the fit crawled toward B_l = 0 on its log scale until its evaluations ran out
+    fs = 4000.0
+    true = TwoMassParameters(J_m=1.09e-3, J_l=2.02e-4, B_m=1.74e-3, B_l=9.6e-4, K=364.0, D=0.0517)
+    tau, r = _record(fs, 6.0, true, eps_deg=0.0, encoder_bits_motor=20, seed=5)
+    kp = kalman_problem(tau, r.motor_position, fs)
+    start = TwoMassParameters(J_m=1.03 * true.J_m, J_l=0.95 * true.J_l, B_m=1.3 * true.B_m, B_l=0.05 * true.B_l,
+                              K=0.95 * true.K, D=1.1 * true.D)
+    seed = PemFit(parameters=start, epsilon_rad=0.0, coulomb_motor_nm=0.0, coulomb_load_nm=0.0,
+                  lag_s=0.0, terms=ModelTerms(), residual=np.zeros(1), cost_nm=math.nan, names=(),
+                  covariance=np.zeros((0, 0)), n_effective=1.0, evaluations=0, converged=False, message="")
+    fit = kalman_fit(kp, seed, epsilon_max_rad=math.radians(2.0), threads=2, max_nfev=30)
+    assert fit.converged, fit.message
+    p = fit.parameters
+    for name in ("J_m", "J_l", "K"):
+        assert getattr(p, name) == pytest.approx(getattr(true, name), rel=0.005), name
+    assert p.B_m + p.B_l == pytest.approx(true.B_m + true.B_l, rel=0.05)
