@@ -176,3 +176,25 @@ def test_a_damping_the_record_does_not_determine_does_not_keep_the_fit_from_conv
     for name in ("J_m", "J_l", "K"):
         assert getattr(p, name) == pytest.approx(getattr(true, name), rel=0.005), name
     assert p.B_m + p.B_l == pytest.approx(true.B_m + true.B_l, rel=0.05)
+
+
+def test_a_fit_stopped_at_its_limit_within_a_tenth_of_a_standard_error_of_its_optimum_has_converged() -> None:
+    from scipy.optimize import least_squares
+
+    from commission.ident.estimator import _covariance, _within_a_step
+
+    # a straight line through noisy points: the optimum and its covariance are known in closed form
+    rng = np.random.default_rng(1)
+    t = np.linspace(0.0, 1.0, 400)
+    y = 2.0 + 3.0 * t + 0.1 * rng.standard_normal(t.size)
+    A = np.stack((np.ones_like(t), t), axis=1)
+    best = np.linalg.lstsq(A, y, rcond=None)[0]
+    sd = np.sqrt(np.diag(_covariance(A, A @ best - y)))
+
+    def stopped(at: np.ndarray):  # a least squares that evaluates once and stops where it starts
+        return least_squares(lambda x: A @ x - y, at, jac=lambda x: A, max_nfev=1, method="trf")
+
+    for offset, expected in ((0.05, True), (0.5, False), (3.0, False)):
+        res = stopped(best + offset * sd)
+        assert res.status == 0
+        assert _within_a_step(res, _covariance(res.jac, res.fun)) is expected, offset

@@ -307,13 +307,29 @@ def _result(obj: _Objective, z: NDArray[np.float64], res: Any, n_effective: floa
     """The :class:`PemFit` of a least squares' optimum ``z`` over its ``free`` coordinates (default: all;
     its Newey–West covariance from ``res``)."""
     r = np.asarray(res.fun)
-    cov = _held_covariance(res, np.ones(z.size, dtype=bool) if free is None else free)
+    free = np.ones(z.size, dtype=bool) if free is None else free
+    cov = _held_covariance(res, free)
     p, eps, extra = obj.unpack(z)
     return PemFit(parameters=p, epsilon_rad=eps, coulomb_motor_nm=extra.get("F_cm", 0.0),
                   coulomb_load_nm=extra.get("F_cl", 0.0), lag_s=1e-6 * extra.get("T_c_us", 0.0), terms=obj.terms,
                   residual=r, cost_nm=float(np.sqrt(np.mean(r * r))), names=obj.names, covariance=cov,
                   n_effective=n_effective, evaluations=evaluations,
-                  converged=bool(res.status > 0) and not np.all(r == obj.bad), message=str(res.message), **fields)
+                  converged=bool(res.status > 0 or _within_a_step(res, cov[np.ix_(free, free)])) and not np.all(r == obj.bad),
+                  message=str(res.message), **fields)
+
+
+#: A least squares stopped at its evaluation limit has converged all the same when its Gauss–Newton step
+#: from there moves no coordinate by more than this share of its standard error: on a likelihood rugged
+#: at the difference step's scale the cost keeps falling by more than ftol in ever smaller steps.
+_CONVERGED_STEP = 0.1
+
+
+def _within_a_step(res: Any, cov: NDArray[np.float64]) -> bool:
+    """Whether the Gauss–Newton step −(JᵀJ)⁻¹Jᵀr at a least squares' end is within ``_CONVERGED_STEP``
+    standard errors (``cov``, of its free coordinates) in every coordinate."""
+    J, r = np.asarray(res.jac), np.asarray(res.fun)
+    step = -np.linalg.pinv(J.T @ J) @ (J.T @ r)
+    return bool(np.all(np.abs(step) <= _CONVERGED_STEP * np.sqrt(np.diag(cov))))
 
 
 _TERM_COORDINATE = {"coulomb_motor": "F_cm", "coulomb_load": "F_cl", "current_loop": "T_c_us"}
