@@ -434,8 +434,8 @@ def _likelihood_cost(pem: PemFit) -> float:
 
 def _stiffer_starts(run: _Run, cell: Any, pem: PemFit) -> tuple[_Run, Any, PemFit, list[dict[str, float]]]:
     """The scan, the fit and the estimate again from the start with its stiffness raised by each of
-    ``_STIFFER_STARTS`` (the damping by its square root, ζ kept); the estimate of the largest likelihood
-    is kept.
+    ``_STIFFER_STARTS`` in turn (the damping by its square root, ζ kept), while each makes the record
+    more likely than the one before; the estimate of the largest likelihood is kept.
 
     The gap softens the spring the FRD sees (its describing function), so on backlash-rich records the
     frequency-domain start's resonance is low, often beyond the fit's basin; the inertias, from the
@@ -459,8 +459,9 @@ def _stiffer_starts(run: _Run, cell: Any, pem: PemFit) -> tuple[_Run, Any, PemFi
             continue
         spent += detail["evaluations"] + p.evaluations
         tried.append({"stiffness_factor": factor, "negative_log_likelihood": _likelihood_cost(p)})
-        if _likelihood_cost(p) < _likelihood_cost(best[2]):
-            best = (other, c, p)
+        if not _likelihood_cost(p) < _likelihood_cost(best[2]):
+            break  # the ladder is climbed while each start makes the record more likely
+        best = (other, c, p)
     chosen, c, p = best
     p = replace(p, evaluations=spent)
     if chosen is not run:
