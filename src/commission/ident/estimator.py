@@ -655,12 +655,19 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
         if z[6] > 0:
             z, res, interval = _polished(obj, z, res, float(hi[6]), ls, max_nfev, pool)
         calls += obj.calls
+    return _kalman_result(obj, z, res, free, calls, start.selection, keep_all, interval)
+
+
+def _kalman_result(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, free: NDArray[np.bool_], calls: int,
+                   start_selection: dict[str, Any], keep_all: bool, interval: tuple[float, float] | None) -> PemFit:
+    """The Kalman fit's :class:`PemFit` at ``z``: its prediction errors, and the terms kept by their Wald
+    statistic (every free one with ``keep_all``)."""
     inn = obj.innovations(z)
-    n_eff = _n_effective(inn.normalized[:, 0]) if inn is not None else float(np.asarray(res.fun).size)  # type: ignore[attr-defined]
-    selection = _term_selection(obj, z, res, free, problem.sample_rate_hz)
+    n_eff = _n_effective(inn.normalized[:, 0]) if inn is not None else float(np.asarray(res.fun).size)
+    selection = _term_selection(obj, z, res, free, obj.kp.sample_rate_hz)
     if keep_all:
         selection = {t: {**v, "kept": bool(free[obj.names.index(_TERM_COORDINATE[t])])} for t, v in selection.items()}
-    fit_ = _result(obj, z, res, n_eff, calls, free, selection={**start.selection, **selection}, process_noise_nm=obj.process_noise_nm,
+    fit_ = _result(obj, z, res, n_eff, calls, free, selection={**start_selection, **selection}, process_noise_nm=obj.process_noise_nm,
                    load_share=obj.load_share, innovations=inn, epsilon_profile_deg=interval)
     return replace(fit_, terms=ModelTerms(**{t: bool(selection.get(t, {}).get("kept", False))
                                              for t in _TERM_COORDINATE}))
