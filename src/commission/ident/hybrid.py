@@ -471,8 +471,10 @@ def _stiffer_starts(run: _Run, cell: Any, pem: PemFit) -> tuple[_Run, Any, PemFi
                          "as likely and it is kept (the gap softens the spring the frequency response sees)")
         chosen = replace(chosen, notes=run.notes + chosen.notes)
     else:
-        run.notes.append("the estimate left model error; stiffer starts (×" + ", ×".join(f"{f:g}" for f in _STIFFER_STARTS)
-                         + " K) did not explain the record better")
+        factors = ", ×".join(f"{t['stiffness_factor']:g}" for t in tried[1:])
+        run.notes.append(f"the estimate left model error; stiffer starts (×{factors} K) did not explain the record better"
+                         if factors else "the estimate left model error; no stiffer start keeps the resonance below a "
+                         "quarter of the sample rate")
     return chosen, c, p, tried
 
 
