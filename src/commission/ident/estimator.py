@@ -303,12 +303,12 @@ def fit(problem: ResidualProblem, start: TwoMassParameters, epsilon_rad: float, 
 
 
 def _result(obj: _Objective, z: NDArray[np.float64], res: Any, n_effective: float, evaluations: int,
-            free: NDArray[np.bool_] | None = None, **fields: Any) -> PemFit:
+            free: NDArray[np.bool_] | None = None, cov: NDArray[np.float64] | None = None, **fields: Any) -> PemFit:
     """The :class:`PemFit` of a least squares' optimum ``z`` over its ``free`` coordinates (default: all;
-    its Newey–West covariance from ``res``)."""
+    its Newey–West covariance ``cov``, computed from ``res`` when not given)."""
     r = np.asarray(res.fun)
     free = np.ones(z.size, dtype=bool) if free is None else free
-    cov = _held_covariance(res, free)
+    cov = _held_covariance(res, free) if cov is None else cov
     p, eps, extra = obj.unpack(z)
     return PemFit(parameters=p, epsilon_rad=eps, coulomb_motor_nm=extra.get("F_cm", 0.0),
                   coulomb_load_nm=extra.get("F_cl", 0.0), lag_s=1e-6 * extra.get("T_c_us", 0.0), terms=obj.terms,
@@ -494,8 +494,9 @@ def _hold(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, free: NDArray
     error of 0 (a spurious term absorbs what a slightly wrong basin leaves and moves ε with it; every
     term stays with ``keep_all``), and a gap below ``_EPSILON_ZERO_DEG`` (a free ε near 0 switches mode
     at every zero crossing of the twist and the fit crawls there)."""
-    selection = _term_selection(obj, z, res, free, sample_rate_hz, _TERM_HOLD)
-    _hold_dampings(res, free)
+    cov = _held_covariance(res, free)
+    selection = _term_selection(obj, z, res, cov, free, sample_rate_hz, _TERM_HOLD)
+    _hold_dampings(cov, free)
     for term, sel in selection.items():
         if not (sel["kept"] or keep_all):
             i = obj.names.index(_TERM_COORDINATE[term])
@@ -504,11 +505,11 @@ def _hold(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, free: NDArray
         z[6], free[6] = 0.0, False
 
 
-def _hold_dampings(res: Any, free: NDArray[np.bool_]) -> bool:
+def _hold_dampings(cov: NDArray[np.float64], free: NDArray[np.bool_]) -> bool:
     """Hold, in place, a damping within a standard error of 0 where it stands (B/σ_B = 1/σ of ln B, so
     σ(ln B) > 1): on its log scale the fit would crawl toward 0 without end (a light load's B_l trades
-    with B_m). Returns whether one was held; ``res`` is the least squares over ``free`` as it was."""
-    cov = _held_covariance(res, free)
+    with B_m). Returns whether one was held; ``cov`` is the covariance of the least squares over ``free``
+    as it was (:func:`_held_covariance`)."""
     held = False
     for i in _DAMPINGS:
         if free[i] and not cov[i, i] <= _TERM_HOLD:
@@ -649,7 +650,7 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
                 break
             calls += obj.calls
             obj, z, res, nll = obj2, z2, res2, nll2
-        if not res.status > 0 and _hold_dampings(res, free):
+        if not res.status > 0 and _hold_dampings(_held_covariance(res, free), free):
             z, res = ls(obj, z, max_nfev)  # what stopped it may be a damping crawling toward 0
         interval = None
         if z[6] > 0:
@@ -664,10 +665,11 @@ def _kalman_result(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, free
     statistic (every free one with ``keep_all``)."""
     inn = obj.innovations(z)
     n_eff = _n_effective(inn.normalized[:, 0]) if inn is not None else float(np.asarray(res.fun).size)
-    selection = _term_selection(obj, z, res, free, obj.kp.sample_rate_hz)
+    cov = _held_covariance(res, free)
+    selection = _term_selection(obj, z, res, cov, free, obj.kp.sample_rate_hz)
     if keep_all:
         selection = {t: {**v, "kept": bool(free[obj.names.index(_TERM_COORDINATE[t])])} for t, v in selection.items()}
-    fit_ = _result(obj, z, res, n_eff, calls, free, selection={**start_selection, **selection}, process_noise_nm=obj.process_noise_nm,
+    fit_ = _result(obj, z, res, n_eff, calls, free, cov, selection={**start_selection, **selection}, process_noise_nm=obj.process_noise_nm,
                    load_share=obj.load_share, innovations=inn, epsilon_profile_deg=interval)
     return replace(fit_, terms=ModelTerms(**{t: bool(selection.get(t, {}).get("kept", False))
                                              for t in _TERM_COORDINATE}))
@@ -680,13 +682,13 @@ _LAG_NEGLIGIBLE = 0.1
 _TERM_HOLD = 1.0
 
 
-def _term_selection(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, free: NDArray[np.bool_],
-                    sample_rate_hz: float, threshold: float | None = None) -> dict[str, dict[str, Any]]:
-    """Per candidate term of a least squares over the ``free`` coordinates: its Wald statistic
-    z² = (value/σ)², the threshold (default ln n_eff, the BIC's price of a parameter) and whether it is
-    kept (free, above it, and a current loop slower than ``_LAG_NEGLIGIBLE`` of a sample)."""
+def _term_selection(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, cov: NDArray[np.float64],
+                    free: NDArray[np.bool_], sample_rate_hz: float,
+                    threshold: float | None = None) -> dict[str, dict[str, Any]]:
+    """Per candidate term of a least squares over the ``free`` coordinates (``cov`` its covariance): its
+    Wald statistic z² = (value/σ)², the threshold (default ln n_eff, the BIC's price of a parameter) and
+    whether it is kept (free, above it, and a current loop slower than ``_LAG_NEGLIGIBLE`` of a sample)."""
     r = np.asarray(res.fun)
-    cov = _held_covariance(res, free)
     if threshold is None:
         threshold = math.log(max(_n_effective(r[::obj.kp.outputs]), 2.0))
     out: dict[str, dict[str, Any]] = {}

@@ -176,6 +176,9 @@ class _Run:
     """The start's current-loop time constant (delay fitted beyond the sample's) [s]."""
     epsilon_max_rad: float = math.inf
     """Upper bound of ε in the fit [rad]."""
+    epsilon_searched_rad: float = 0.0
+    """Upper bound of ε over every Kalman fit [rad]: a result the record does not determine says ε lies
+    somewhere up to it (or up to the largest gap the scan considers)."""
 
     @property
     def fs(self) -> float:
@@ -492,6 +495,7 @@ def _kalman_stage(run: _Run, start: PemFit) -> PemFit:
     eps_max = max(run.epsilon_max_rad, 2.0 * start.epsilon_rad)
     if not math.isfinite(eps_max):
         eps_max = math.radians(2.0 * run.opt.epsilon_bounds_deg[1])
+    run.epsilon_searched_rad = max(run.epsilon_searched_rad, eps_max)
     keep_all = run.opt.term_selection == "keep_all"
     kw = dict(epsilon_max_rad=eps_max, threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations, keep_all=keep_all)
     pem = kalman_fit(kp, start, **kw)
@@ -536,6 +540,7 @@ def _check_stage(run: _Run, cell: Any, pem: PemFit) -> tuple[FitQuality, list[di
 
 def _identification(run: _Run, pem: PemFit, quality: FitQuality, iterations: list[dict[str, float]],
                     stages: list[StageResult], scan_evaluations: int) -> Identification:
+    from .scan import EPSILON_EXTEND_MAX_DEG
     from .start import measured_band_hz
 
     eps = pem.epsilon_rad
@@ -549,7 +554,7 @@ def _identification(run: _Run, pem: PemFit, quality: FitQuality, iterations: lis
     return Identification(
         method=Method.HYBRID, parameters=params, epsilon_rad=eps,
         epsilon_interval_rad=(_epsilon_interval(pem, float(run.cutoff["position_step_rad"])) if quality.determined
-                              else (0.0, run.epsilon_max_rad)),
+                              else (0.0, max(run.epsilon_searched_rad, math.radians(EPSILON_EXTEND_MAX_DEG), eps))),
         evaluations=scan_evaluations + pem.evaluations, modes=modes(params), num=num, den=den,
         delay_s=1.0 / run.fs, iterations=iterations, stages=stages, source_samples=len(run.rec),
         sample_rate_hz=run.fs, backlash_detected=detected, notes=run.notes, fit=quality,
