@@ -166,6 +166,11 @@ def test_a_record_the_model_cannot_explain_writes_everything_and_exits_8(good_cs
     assert main(["--replay", str(f), "--out", str(out), "--no-tune"]) == 8
     doc = json.loads((out / "result.json").read_text())
     assert doc["fit"]["approximate"] is True and doc["fit"]["reasons"]
+    # predictions that miss by far more than their predicted size determine nothing: ε's interval is then
+    # everything the identifier could have reported, not a narrow band around the estimate
+    assert doc["fit"]["determined"] is False
+    lo, hi = doc["backlash"]["epsilon_interval_deg"]
+    assert lo == 0.0 and hi >= 16.0 and hi >= doc["backlash"]["epsilon_deg"]
     assert (out / "report.html").exists()
     assert "APPROXIMATE" in capsys.readouterr().out
 
