@@ -51,6 +51,32 @@ def test_at_the_true_parameters_the_prediction_errors_are_the_encoders_noise(fs:
     assert wrong_gap is not None and _rms(wrong_gap.normalized) > 2 * _rms(at_truth.normalized)
 
 
+def test_sigma_points_across_the_gap_turn_the_likelihoods_needle_into_a_basin() -> None:
+    """At the true plant, the negative log-likelihood per prediction error against ε: the plain predictor's
+    is a needle (a gap 1 % off misses the motor's impacts by many standard deviations); with a random walk
+    of the twist of 1e-4·ε per sample, whose sigma points take the modes its uncertainty reaches, it rises
+    smoothly from the truth, and loses little there."""
+    fs, eps = 8000.0, math.radians(1.0)
+    tau, r = _record(fs, 4.0, eps_deg=1.0, encoder_bits_motor=22)
+    kp = kalman_problem(tau, r.motor_position, fs)
+    factors = (0.97, 0.98, 0.99, 1.0, 1.01, 1.02, 1.03)
+
+    def profile(hedged: bool) -> dict[float, float]:
+        out = {}
+        for f in factors:
+            inn = innovations(kp, REFERENCE_PLANT, f * eps, process_noise_nm=1e-2 * kp.torque_rms_nm,
+                              twist_noise_rad=1e-4 * f * eps if hedged else 0.0, sigma_points=hedged)
+            assert inn is not None
+            out[f] = inn.negative_log_likelihood()
+        return out
+
+    plain, hedged = profile(False), profile(True)
+    assert plain[0.99] > 10 * plain[1.0] and plain[1.01] > 10 * plain[1.0]
+    assert hedged[1.0] < 1.05 * plain[1.0]
+    assert max(hedged[f] for f in (0.98, 0.99, 1.01, 1.02)) < 1.1 * hedged[1.0]
+    assert hedged[0.97] > hedged[0.99] > hedged[1.0] * 0.999 and hedged[1.03] > hedged[1.01]
+
+
 def test_a_load_encoder_adds_its_own_channel_and_a_lost_sample_is_no_evidence() -> None:
     fs = 4000.0
     tau, r = _record(fs, 3.0, encoder_bits_motor=22, encoder_bits_load=18)

@@ -343,12 +343,66 @@ def _set_valued_friction(xe: NDArray[np.float64], Gam: NDArray[np.float64], velo
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _predict(x: NDArray[np.float64], tk: float, fmk: float, Fcm: float, Fcl: float, eps: float, Ts: float,
+             Phi: NDArray[np.float64], Gam: NDArray[np.float64], PhiH: NDArray[np.float64], GamH: NDArray[np.float64],
+             V: NDArray[np.complex128], lam: NDArray[np.complex128], Vi: NDArray[np.complex128],
+             Bc: NDArray[np.float64], jump: NDArray[np.float64], u: NDArray[np.float64], xe: NDArray[np.float64],
+             Msw: NDArray[np.float64]) -> tuple[int, bool, int]:
+    """One sample's prediction of ``x`` into ``xe``; returns (mode at its start, switched, events); across a
+    switch ``Msw`` holds the flow's linearization."""
+    n = x.size
+    reg = _region(x[2], eps)
+    m = 0 if reg == 0 else 1
+    u[0] = tk
+    u[1] = reg * eps
+    u[2] = Fcm * fmk
+    u[3] = 0.0
+    for i in range(n):
+        a = 0.0
+        for j in range(n):
+            a += Phi[m, i, j] * x[j]
+        for q in range(3):
+            a += Gam[m, i, q] * u[q]
+        xe[i] = a
+    if Fcm > 0.0 and fmk == 0.0:
+        # the encoder did not move: the motor's friction as the load's, set-valued at the end velocity
+        u[2] = _set_valued_friction(xe, Gam[m], 1, 2, Fcm)
+    if Fcl > 0.0:
+        u[3] = _set_valued_friction(xe, Gam[m], 3, 3, Fcl)
+    switch = False
+    if eps > 0.0:
+        switch = _region(xe[2], eps) != reg
+        # a graze (out of the mode and back within the sample) is possible only near a boundary
+        reach = 2.0 * Ts * (abs(x[1] - x[3]) + abs(xe[1] - xe[3]))
+        near = min(abs(abs(x[2]) - eps), abs(abs(xe[2]) - eps)) < reach
+        if not switch and near:
+            xh2 = 0.0
+            for j in range(n):
+                xh2 += PhiH[m, 2, j] * x[j]
+            for q in range(4):
+                xh2 += GamH[m, 2, q] * u[q]
+            switch = _region(xh2, eps) != reg
+    events = 0
+    if switch:
+        for i in range(n):
+            xe[i] = x[i]
+        # (the load friction as the interval's plain prediction set it: continuous across the switch)
+        events = _switching_step(xe, u, eps, Ts, V, lam, Vi, Bc, jump, Msw)
+    return m, switch, events
+
+
+#: Sigma points along the twist (Gauss–Hermite, 3 points: offsets 0, ±√3·σ_s, weights 2/3, 1/6, 1/6).
+_SIGMA = math.sqrt(3.0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.float64], fm: NDArray[np.float64],
             measured: NDArray[np.bool_], Fcm: float, Fcl: float, eps: float, Ts: float,
             Phi: NDArray[np.float64], Gam: NDArray[np.float64], PhiH: NDArray[np.float64], GamH: NDArray[np.float64],
             V: NDArray[np.complex128], lam: NDArray[np.complex128], Vi: NDArray[np.complex128],
             Bc: NDArray[np.float64], jump: NDArray[np.float64], Q: NDArray[np.float64], R: NDArray[np.float64],
-            x0: NDArray[np.float64], P0: NDArray[np.float64], e: NDArray[np.float64], S_out: NDArray[np.float64]) -> int:
+            x0: NDArray[np.float64], P0: NDArray[np.float64], e: NDArray[np.float64], S_out: NDArray[np.float64],
+            sigma_points: bool) -> int:
     N = y.size
     n = x0.size
     nout = e.shape[1]
@@ -362,66 +416,92 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
     P_last = np.zeros((n, n))
     G_st = np.zeros((nout, n))
     S_st = np.ones(nout)
+    xs = np.empty((3, n))
+    xes = np.empty((3, n))
+    Fs = np.empty((3, n, n))
+    Pc = np.empty((n, n))
+    col = np.empty(n)
+    w = np.array([2.0 / 3.0, 1.0 / 6.0, 1.0 / 6.0])
+    off = np.array([0.0, _SIGMA, -_SIGMA])
     steady = False
     events = 0
     for k in range(N - 1):
-        reg = _region(x[2], eps)
-        m = 0 if reg == 0 else 1
-        u[0] = tau[k]
-        u[1] = reg * eps
-        u[2] = Fcm * fm[k]
-        u[3] = 0.0
-        for i in range(n):
-            a = 0.0
-            for j in range(n):
-                a += Phi[m, i, j] * x[j]
-            for q in range(3):
-                a += Gam[m, i, q] * u[q]
-            xe[i] = a
-        if Fcm > 0.0 and fm[k] == 0.0:
-            # the encoder did not move: the motor's friction as the load's, set-valued at the end velocity
-            u[2] = _set_valued_friction(xe, Gam[m], 1, 2, Fcm)
-        if Fcl > 0.0:
-            u[3] = _set_valued_friction(xe, Gam[m], 3, 3, Fcl)
-        switch = False
-        if eps > 0.0:
-            switch = _region(xe[2], eps) != reg
-            # a graze (out of the mode and back within the sample) is possible only near a boundary
-            reach = 2.0 * Ts * (abs(x[1] - x[3]) + abs(xe[1] - xe[3]))
-            near = min(abs(abs(x[2]) - eps), abs(abs(xe[2]) - eps)) < reach
-            if not switch and near:
-                xh2 = 0.0
-                for j in range(n):
-                    xh2 += PhiH[m, 2, j] * x[j]
-                for q in range(4):
-                    xh2 += GamH[m, 2, q] * u[q]
-                switch = _region(xh2, eps) != reg
-        if switch:
+        spread = False
+        if sigma_points and eps > 0.0 and P[2, 2] > 0.0:
+            # the twist's uncertainty reaches a boundary: its sigma points may take different modes
+            h = _SIGMA * math.sqrt(P[2, 2])
+            spread = h > 1e-6 * eps and abs(abs(x[2]) - eps) < 4.0 * Ts * abs(x[1] - x[3]) + h
+        if not spread:
+            m, switch, ev = _predict(x, tau[k], fm[k], Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, V, lam, Vi, Bc, jump,
+                                     u, xe, Msw)
+            events += ev
             for i in range(n):
-                xe[i] = x[i]
-            # (the load friction as the interval's plain prediction set it: continuous across the switch)
-            events += _switching_step(xe, u, eps, Ts, V, lam, Vi, Bc, jump, Msw)
-        for i in range(n):
-            x[i] = xe[i]
-        if steady and m == 1 and not switch and measured[k + 1]:
-            # in contact, the covariance has reached its steady state: the stored gains
-            for o in range(nout):
-                innov = y[k + 1] - x[0] if o == 0 else yl[k + 1] - (x[0] - x[2])
-                e[k, o] = innov
-                S_out[k, o] = S_st[o]
+                x[i] = xe[i]
+            if steady and m == 1 and not switch and measured[k + 1]:
+                # in contact, the covariance has reached its steady state: the stored gains
+                for o in range(nout):
+                    innov = y[k + 1] - x[0] if o == 0 else yl[k + 1] - (x[0] - x[2])
+                    e[k, o] = innov
+                    S_out[k, o] = S_st[o]
+                    for i in range(n):
+                        x[i] += G_st[o, i] * innov
+                continue
+            # P ← F P Fᵀ + Q: F the interval's mode's Φ, or across a switch the saltated flow's linearization
+            F = Msw if switch else Phi[m]
+            _product(F, P, T)
+            for i in range(n):
+                for j in range(i, n):
+                    acc = Q[m, i, j]
+                    for l in range(n):
+                        acc += T[i, l] * F[j, l]
+                    P[i, j] = acc
+                    P[j, i] = acc
+        else:
+            # three points along the twist's direction in the state (x ± √3·P[:,2]/σ_s), each through its own
+            # modes; the rest of the covariance (given the twist) through each point's flow
+            sd = math.sqrt(P[2, 2])
+            for i in range(n):
+                col[i] = P[i, 2] / sd
+            for i in range(n):
+                for j in range(n):
+                    Pc[i, j] = P[i, j] - col[i] * col[j]
+            m0 = 0
+            for p in range(3):
                 for i in range(n):
-                    x[i] += G_st[o, i] * innov
-            continue
-        # P ← F P Fᵀ + Q: F the interval's mode's Φ, or across a switch the saltated flow's linearization
-        F = Msw if switch else Phi[m]
-        _product(F, P, T)
-        for i in range(n):
-            for j in range(i, n):
-                acc = Q[m, i, j]
-                for l in range(n):
-                    acc += T[i, l] * F[j, l]
-                P[i, j] = acc
-                P[j, i] = acc
+                    xs[p, i] = x[i] + off[p] * col[i]
+                mp, sw, ev = _predict(xs[p], tau[k], fm[k], Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, V, lam, Vi, Bc,
+                                      jump, u, xes[p], Msw)
+                if p == 0:
+                    m0 = mp
+                    events += ev
+                if sw:
+                    Fs[p, :, :] = Msw
+                else:
+                    Fs[p, :, :] = Phi[mp]
+            for i in range(n):
+                acc = 0.0
+                for p in range(3):
+                    acc += w[p] * xes[p, i]
+                x[i] = acc
+            for i in range(n):
+                for j in range(i, n):
+                    acc = Q[m0, i, j]
+                    for p in range(3):
+                        acc += w[p] * (xes[p, i] - x[i]) * (xes[p, j] - x[j])
+                    P[i, j] = acc
+            for p in range(3):
+                _product(Fs[p], Pc, T)
+                for i in range(n):
+                    for j in range(i, n):
+                        acc = 0.0
+                        for l in range(n):
+                            acc += T[i, l] * Fs[p, j, l]
+                        P[i, j] += w[p] * acc
+            for i in range(n):
+                for j in range(i + 1, n):
+                    P[j, i] = P[i, j]
+            m = m0
+            switch = True  # never a steady sample
         if not measured[k + 1]:
             steady = False
             for o in range(nout):
@@ -462,7 +542,8 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
 
 def innovations(problem: KalmanProblem, params: TwoMassParameters, epsilon_rad: float, *,
                 coulomb_motor_nm: float = 0.0, coulomb_load_nm: float = 0.0, lag_s: float = 0.0,
-                process_noise_nm: float, load_share: float = 0.0) -> Innovations | None:
+                process_noise_nm: float, load_share: float = 0.0, twist_noise_rad: float = 0.0,
+                sigma_points: bool = False) -> Innovations | None:
     """The Kalman predictor's prediction errors at these parameters (None: the model has a defective
     mode, where no eigen decomposition describes it).
 
@@ -476,6 +557,10 @@ def innovations(problem: KalmanProblem, params: TwoMassParameters, epsilon_rad: 
     if model is None:
         return None
     n = model.Phi.shape[1]
+    Qm = model.Q
+    if twist_noise_rad > 0.0:  # a random walk of the twist: the gap's edges known only to this
+        Qm = model.Q.copy()
+        Qm[:, 2, 2] += twist_noise_rad ** 2
     R = pr.measurement_noise_rad ** 2
     x0 = np.zeros(n)
     x0[0] = pr.motor_position[0]
@@ -494,7 +579,8 @@ def innovations(problem: KalmanProblem, params: TwoMassParameters, epsilon_rad: 
     S = np.ones_like(e)
     events = _filter(pr.torque_ref, pr.motor_position, yl, pr.motor_friction, pr.measured, float(coulomb_motor_nm),
                      float(coulomb_load_nm), float(epsilon_rad), Ts, model.Phi, model.Gam,
-                     model.PhiH, model.GamH, model.V, model.lam, model.Vi, model.B, jump, model.Q, R, x0, P0, e, S)
+                     model.PhiH, model.GamH, model.V, model.lam, model.Vi, model.B, jump, Qm, R, x0, P0, e, S,
+                     sigma_points)
     S = S / R[None, :]
     return Innovations(error=e / np.sqrt(R)[None, :], normalized=e / np.sqrt(R)[None, :] / np.sqrt(S),
                        log_variance=np.log(S), events=int(events))
