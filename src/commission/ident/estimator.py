@@ -549,10 +549,15 @@ def _polished(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, top_deg: 
     return z, res, interval
 
 
+#: The divergence plateau at most: its sum of squares over a million prediction errors stays finite.
+_PLATEAU_MAX = 1e100
+
+
 def _armed(obj: _KalmanObjective, z: NDArray[np.float64]) -> _KalmanObjective:
-    """``obj`` with its divergence plateau set far above its residual at ``z``."""
+    """``obj`` with its divergence plateau set far above its residual at ``z`` (and far below where its sum of
+    squares would overflow: a predictor that diverges can return finite values of 1e200)."""
     v0 = obj(z)
-    obj.bad = 1e3 * max(1.0, float(np.max(np.abs(v0)))) if np.all(np.isfinite(v0)) else 1e12
+    obj.bad = min(1e3 * max(1.0, float(np.max(np.abs(v0)))), _PLATEAU_MAX) if np.all(np.isfinite(v0)) else 1e12
     return obj
 
 
