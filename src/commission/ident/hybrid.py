@@ -228,9 +228,12 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
         st.start("restarts", 0.7)
         run, cell, pem, restarts = _stiffer_starts(run, cell, pem)
         st.done("restarts", starts=restarts)
-    from .assess import DISTURBANCE_MISFIT
+    from .assess import DISTURBANCE_MISFIT, INNOVATION_UNDETERMINED
 
-    if start.epsilon_rad > 0.0 and pem.process_noise_nm >= DISTURBANCE_MISFIT * _torque_rms(run):
+    # (a record the model cannot follow at all, its predictions 100× off, has no gap's basin to find)
+    level = float(np.sqrt(np.mean(pem.innovations.normalized ** 2))) if pem.innovations is not None else math.inf
+    if (start.epsilon_rad > 0.0 and pem.process_noise_nm >= DISTURBANCE_MISFIT * _torque_rms(run)
+            and level < INNOVATION_UNDETERMINED):
         st.start("hedged", 0.8)
         run, pem = _hedged_stage(first, start, run, pem)
         st.done("hedged", process_noise_nm=pem.process_noise_nm, evaluations=pem.evaluations)
