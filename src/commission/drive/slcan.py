@@ -28,7 +28,7 @@ import os
 import re
 import struct
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import can
@@ -275,18 +275,24 @@ class SlcanCanopenDrive(CanopenDrive):
         return True
 
     def quick_stop(self) -> None:
-        try:
-            super().quick_stop()
-        except DriveError as err:
-            sent = self._blind(Command.QUICK_STOP)
-            raise DriveError(f"{err} (quick stop {'sent without confirmation' if sent else 'could not be sent'})") from err
+        self._stop(super().quick_stop, Command.QUICK_STOP, "quick stop")
 
     def disable(self) -> None:
+        self._stop(super().disable, Command.DISABLE_VOLTAGE, "disable voltage")
+
+    def _stop(self, confirmed: Callable[[], None], command: Command, what: str) -> None:
+        """``confirmed`` (the command through the state machine); when its answers do not come, the command
+        sent blind and confirmed once more: an answer can queue behind an interrupted transfer's frames past
+        the SDO timeout (Ctrl-C during the download, on a loaded 2-core machine)."""
         try:
-            super().disable()
+            confirmed()
         except DriveError as err:
-            sent = self._blind(Command.DISABLE_VOLTAGE)
-            raise DriveError(f"{err} (disable voltage {'sent without confirmation' if sent else 'could not be sent'})") from err
+            sent = self._blind(command)
+            if isinstance(err, DriveTimeout):
+                with contextlib.suppress(DriveError):
+                    confirmed()
+                    return
+            raise DriveError(f"{err} ({what} {'sent without confirmation' if sent else 'could not be sent'})") from err
 
     def _write_controlword(self, controlword: int) -> None:
         with self._diagnosed():
