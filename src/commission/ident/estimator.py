@@ -625,92 +625,117 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
     and the noise model chosen again where the sharpening and the polish end: for records whose plain
     estimate needs a large disturbance (a start outside the needle the plain likelihood has there).
     """
-    ref = problem.torque_rms_nm
-    terms = start.terms
-    twist = _HEDGE_TWIST_NOISE if hedged else 0.0
-
-    def objective(level: float, share: float = _LOAD_SHARES[-1], robust: bool = False) -> _KalmanObjective:
-        return _KalmanObjective(problem, terms, level * ref, share, robust, twist)
-
-    obj = objective(_CONTINUATION[0])
-    z, lo, hi, scale, steps = _coordinates(start, obj, epsilon_max_rad, ref)
-    calls = 0
-    free = np.ones(z.size, dtype=bool)
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        def ls(o: _KalmanObjective, z0: NDArray[np.float64], nfev: int, tol: float = _KALMAN_TOL) -> tuple[
-                NDArray[np.float64], Any]:
-            return _least_squares(o, z0, free, lo, hi, scale, steps, pool, nfev, tol)
-
-        def settle(z0: NDArray[np.float64]) -> tuple[_KalmanObjective, NDArray[np.float64], Any]:
-            """The noise model of the largest likelihood at ``z0``, and the least squares with it."""
-            nonlocal calls
-            level, share = _noise_level(lambda lv, sh: objective(lv, sh).innovations(z0), pool)
-            calls += len(_PROCESS_NOISE_GRID) * len(_LOAD_SHARES)
-            o = _armed(objective(level, share), z0)
-            return (o, *ls(o, z0, max_nfev))
-
-        profiled = False
-        if hedged and z[6] > 0:
-            z, spent = _hedge(lambda noise_rad: _KalmanObjective(problem, terms, _CONTINUATION[0] * ref,
-                                                                 _LOAD_SHARES[-1], twist_noise_rad=noise_rad),
-                              z, float(hi[6]), ls, pool)
-            calls += spent
-            profiled = True
-        # continuation: a predictor that follows the record (wide basin, where ε is profiled), then one
-        # that trusts the model (sharp minimum; a profile there could jump to a neighbouring valley)
-        for level in _CONTINUATION:
-            obj = _armed(objective(level, robust=_ROBUST_CONTINUATION), z)
-            if level == _CONTINUATION[0] and z[6] > 0 and _PROFILE_FIRST and not profiled:
-                z = _epsilon_profile(obj, z, float(hi[6]), pool)
-            z, res = ls(obj, z, _CONTINUATION_NFEV, _CONTINUATION_TOL)
-            calls += obj.calls
-        _hold(obj, z, res, free, problem.sample_rate_hz, keep_all)
-        obj, z, res = settle(z)
-        share = obj.load_share
-        nll = math.nan  # the current estimate's, computed once and carried from round to round
-        for _ in range(_SHARPEN_ROUNDS):
-            # a noise model that needs a large disturbance flattens the likelihood: the fit may have stopped
-            # in a neighbouring basin; sharpened again from there (the Cauchy likelihood at the smallest
-            # continuation level), the noise model chosen again, kept if the record is more likely
-            if obj.process_noise_nm <= _SHARPEN_ABOVE * ref:
-                break
-            nll = _nll(obj, z) if math.isnan(nll) else nll
-            if hedged:
-                # the noise model was chosen where the least squares started: chosen again where it ended
-                obj2, z2, res2 = settle(z)
-                nll2 = _nll(obj2, z2)
-                if nll2 < nll and obj2.process_noise_nm < obj.process_noise_nm:
-                    calls += obj.calls
-                    obj, z, res, nll = obj2, z2, res2, nll2
-                    continue
-                calls += obj2.calls
-            sharp = _armed(objective(_CONTINUATION[-1], share, robust=True), z)
-            z2 = ls(sharp, z, _CONTINUATION_NFEV, _CONTINUATION_TOL)[0]
-            calls += sharp.calls
-            obj2, z2, res2 = settle(z2)
-            nll2 = _nll(obj2, z2)
-            if not nll2 < nll:
-                calls += obj2.calls
-                break
-            calls += obj.calls
-            obj, z, res, nll = obj2, z2, res2, nll2
-        if not res.status > 0 and _hold_dampings(_held_covariance(res, free), free):
-            z, res = ls(obj, z, max_nfev)  # what stopped it may be a damping crawling toward 0
+        run = _KalmanFit(problem, start, epsilon_max_rad, pool, max_nfev, hedged)
+        obj, z, res = run.continuation(keep_all)
+        obj, z, res = run.sharpened(obj, z, res)
+        if not res.status > 0 and _hold_dampings(_held_covariance(res, run.free), run.free):
+            z, res = run.ls(obj, z, max_nfev)  # what stopped it may be a damping crawling toward 0
         interval = None
         if z[6] > 0:
-            z, res, interval = _polished(obj, z, res, float(hi[6]), ls, max_nfev, pool)
-            if hedged and obj.process_noise_nm > _SHARPEN_ABOVE * ref:
-                # the polish moved ε into the gap's basin: the noise model chosen again there (22:079:
-                # 12 % → 0.2 % of RMS τ_ref), and polished again if the record is more likely
-                obj2, z2, res2 = settle(z)
-                if _nll(obj2, z2) < _nll(obj, z):
-                    calls += obj.calls
-                    obj, z, res = obj2, z2, res2
-                    z, res, interval = _polished(obj, z, res, float(hi[6]), ls, max_nfev, pool)
-                else:
-                    calls += obj2.calls
-        calls += obj.calls
-    return _kalman_result(obj, z, res, free, calls, start.selection, keep_all, interval)
+            obj, z, res, interval = run.polished(obj, z, res)
+        run.calls += obj.calls
+    return _kalman_result(obj, z, res, run.free, run.calls, start.selection, keep_all, interval)
+
+
+class _KalmanFit:
+    """One :func:`kalman_fit`: the coordinates' start, bounds and scales, the coordinates held, the
+    thread pool, and the predictor evaluations spent (``calls``)."""
+
+    def __init__(self, problem: KalmanProblem, start: PemFit, epsilon_max_rad: float, pool: ThreadPoolExecutor,
+                 max_nfev: int, hedged: bool) -> None:
+        self.problem, self.terms, self.ref = problem, start.terms, problem.torque_rms_nm
+        self.pool, self.max_nfev, self.hedged = pool, max_nfev, hedged
+        self.twist = _HEDGE_TWIST_NOISE if hedged else 0.0
+        self.z, self.lo, self.hi, self.scale, self.steps = _coordinates(
+            start, self.objective(_CONTINUATION[0]), epsilon_max_rad, self.ref)
+        self.top_deg = float(self.hi[6])
+        self.free = np.ones(self.z.size, dtype=bool)
+        self.calls = 0
+
+    def objective(self, level: float, share: float = _LOAD_SHARES[-1], robust: bool = False) -> _KalmanObjective:
+        """The predictor with a torque disturbance of ``level`` × RMS τ_ref, ``share`` of it on the load."""
+        return _KalmanObjective(self.problem, self.terms, level * self.ref, share, robust, self.twist)
+
+    def ls(self, o: _KalmanObjective, z0: NDArray[np.float64], nfev: int,
+           tol: float = _KALMAN_TOL) -> tuple[NDArray[np.float64], Any]:
+        return _least_squares(o, z0, self.free, self.lo, self.hi, self.scale, self.steps, self.pool, nfev, tol)
+
+    def settle(self, z0: NDArray[np.float64]) -> tuple[_KalmanObjective, NDArray[np.float64], Any]:
+        """The noise model of the largest likelihood at ``z0``, and the least squares with it."""
+        level, share = _noise_level(lambda lv, sh: self.objective(lv, sh).innovations(z0), self.pool)
+        self.calls += len(_PROCESS_NOISE_GRID) * len(_LOAD_SHARES)
+        o = _armed(self.objective(level, share), z0)
+        return (o, *self.ls(o, z0, self.max_nfev))
+
+    def continuation(self, keep_all: bool) -> tuple[_KalmanObjective, NDArray[np.float64], Any]:
+        """Step 1 (the hedged fit started by :func:`_hedge`), the terms within a standard error of 0 held,
+        and the noise model settled where it ends."""
+        z, profiled = self.z, False
+        if self.hedged and z[6] > 0:
+            z, spent = _hedge(lambda noise_rad: _KalmanObjective(
+                self.problem, self.terms, _CONTINUATION[0] * self.ref, _LOAD_SHARES[-1], twist_noise_rad=noise_rad),
+                z, self.top_deg, self.ls, self.pool)
+            self.calls += spent
+            profiled = True
+        # a predictor that follows the record (wide basin, where ε is profiled), then one that trusts the
+        # model (sharp minimum; a profile there could jump to a neighbouring valley)
+        for level in _CONTINUATION:
+            obj = _armed(self.objective(level, robust=_ROBUST_CONTINUATION), z)
+            if level == _CONTINUATION[0] and z[6] > 0 and _PROFILE_FIRST and not profiled:
+                z = _epsilon_profile(obj, z, self.top_deg, self.pool)
+            z, res = self.ls(obj, z, _CONTINUATION_NFEV, _CONTINUATION_TOL)
+            self.calls += obj.calls
+        _hold(obj, z, res, self.free, self.problem.sample_rate_hz, keep_all)
+        return self.settle(z)
+
+    def sharpened(self, obj: _KalmanObjective, z: NDArray[np.float64],
+                  res: Any) -> tuple[_KalmanObjective, NDArray[np.float64], Any]:
+        """A noise model that needs a large disturbance flattens the likelihood: the fit may have stopped in
+        a neighbouring basin; sharpened again from there (the Cauchy likelihood at the smallest
+        continuation level), the noise model chosen again, kept if the record is more likely."""
+        nll = math.nan  # the current estimate's, computed once and carried from round to round
+        share = obj.load_share
+        for _ in range(_SHARPEN_ROUNDS):
+            if obj.process_noise_nm <= _SHARPEN_ABOVE * self.ref:
+                break
+            nll = _nll(obj, z) if math.isnan(nll) else nll
+            if self.hedged:
+                # the noise model was chosen where the least squares started: chosen again where it ended
+                obj2, z2, res2 = self.settle(z)
+                nll2 = _nll(obj2, z2)
+                if nll2 < nll and obj2.process_noise_nm < obj.process_noise_nm:
+                    self.calls += obj.calls
+                    obj, z, res, nll = obj2, z2, res2, nll2
+                    continue
+                self.calls += obj2.calls
+            sharp = _armed(self.objective(_CONTINUATION[-1], share, robust=True), z)
+            z2 = self.ls(sharp, z, _CONTINUATION_NFEV, _CONTINUATION_TOL)[0]
+            self.calls += sharp.calls
+            obj2, z2, res2 = self.settle(z2)
+            nll2 = _nll(obj2, z2)
+            if not nll2 < nll:
+                self.calls += obj2.calls
+                break
+            self.calls += obj.calls
+            obj, z, res, nll = obj2, z2, res2, nll2
+        return obj, z, res
+
+    def polished(self, obj: _KalmanObjective, z: NDArray[np.float64], res: Any) -> tuple[
+            _KalmanObjective, NDArray[np.float64], Any, tuple[float, float] | None]:
+        """ε polished (:func:`_polished`), and its 95 % likelihood-ratio interval [deg]."""
+        z, res, interval = _polished(obj, z, res, self.top_deg, self.ls, self.max_nfev, self.pool)
+        if self.hedged and obj.process_noise_nm > _SHARPEN_ABOVE * self.ref:
+            # the polish moved ε into the gap's basin: the noise model chosen again there (22:079:
+            # 12 % → 0.2 % of RMS τ_ref), and polished again if the record is more likely
+            obj2, z2, res2 = self.settle(z)
+            if _nll(obj2, z2) < _nll(obj, z):
+                self.calls += obj.calls
+                obj, z, res = obj2, z2, res2
+                z, res, interval = _polished(obj, z, res, self.top_deg, self.ls, self.max_nfev, self.pool)
+            else:
+                self.calls += obj2.calls
+        return obj, z, res, interval
 
 
 def _hedge(objective: Callable[[float], _KalmanObjective], z: NDArray[np.float64], top_deg: float,
