@@ -45,7 +45,7 @@ time-domain estimator (:mod:`commission.ident.estimator`), not the answer.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -125,6 +125,91 @@ def fit_transfer_function(frd: FRD, *, num_order: int = 2, den_order: int = 3, d
 def _fit(frd: FRD, num_order: int, den_order: int, delay_s: float | None, transient: bool,
          max_iterations: int, tol: float, weighting: Weighting, polish: bool,
          physical: bool, fit_delay: bool = False) -> TransferFunctionFit:
+    b = _basis(frd, num_order, den_order, delay_s, transient, weighting)
+    theta, it, converged = _sanathanan_koerner(b, max_iterations, tol)
+    if polish:
+        try:
+            th_p, _, ssq = _polished(b, theta, False)
+            if ssq <= float(np.sum(b.resid(theta) ** 2)):
+                theta = th_p
+        except (ValueError, np.linalg.LinAlgError):
+            pass  # keep the SK result
+    if fit_delay:
+        try:
+            th_d, extra, ssq = _polished(b, theta, True)
+        except (ValueError, np.linalg.LinAlgError):
+            extra, ssq = 0.0, math.inf
+        # kept only when it explains much of the error (see _DELAY_GAIN); H then carries it
+        # (the physical refit below and fit_error use the new H through model())
+        if extra > 0.0 and ssq <= _DELAY_GAIN ** 2 * float(np.sum(b.resid(theta) ** 2)):
+            theta, b = th_d, replace(b, td=b.td + extra, H=b.H * np.exp(-b.s * extra))
+
+    num, den = _unscale(theta, b.na, num_order, b.w_scale)
+    constrained = False
+    if physical and (num_order, den_order) == (2, 3):
+        try:
+            from_velocity_tf(num, den)
+        except IdentificationError:
+            phys = _physical_fit(theta, b)
+            if phys is None:
+                raise IdentificationError(
+                    "the 2/3 fit is not a physical two-mass plant and no physical refit "
+                    "could be started from it (no anti-resonance below a resonance)"
+                ) from None
+            theta, constrained = phys, True
+            num, den = _unscale(theta, b.na, num_order, b.w_scale)
+
+    fit_error = float(np.sqrt(np.mean(np.abs(b.Y - b.model(theta)[1]) ** 2 / np.abs(b.Y) ** 2)))
+    return TransferFunctionFit(
+        num=num, den=den, delay_s=b.td, fit_error=fit_error, iterations=it,
+        converged=converged, sample_rate_hz=b.fs if b.hold else 0.0, constrained=constrained,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class _Basis:
+    """One fit's data and regressors over the band's M bins: the scaled Laplace variable x = s/ω_s, the
+    DFTs U, Y, the sampling operator H, the transient's map F, the weights w, and the powers of x
+    (columns x^n … x^0) of A (``Xa``), B (``Xb``) and I (``Xi``, none without the transient). θ is
+    [a_{na−1}..a_0, b_{nb−1}..b_0, i…] in x, A monic in x."""
+
+    fs: float
+    td: float  # delay modelled [s]
+    hold: bool  # the hold's sinc² modelled
+    s: NDArray[np.complex128]  # j·2π·f [rad/s], shape (M,)
+    w_scale: float  # ω_s [rad/s]
+    U: NDArray[np.complex128]
+    Y: NDArray[np.complex128]
+    H: NDArray[np.complex128]
+    F: NDArray[np.complex128]
+    w: NDArray[np.float64]
+    Xa: NDArray[np.complex128]  # (M, na + 1)
+    Xb: NDArray[np.complex128]  # (M, nb)
+    Xi: NDArray[np.complex128]  # (M, den_order + 1) or (M, 0)
+
+    @property
+    def na(self) -> int:
+        return self.Xa.shape[1] - 1
+
+    @property
+    def nb(self) -> int:
+        return self.Xb.shape[1]
+
+    def model(self, th: NDArray[np.float64]) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+        """(A(x), Ŷ = (H·B·U + F·I)/A) at θ."""
+        na, nb = self.na, self.nb
+        Ax = self.Xa[:, 0] + self.Xa[:, 1:] @ th[:na]
+        return Ax, (self.H * (self.Xb @ th[na:na + nb]) * self.U + self.F * (self.Xi @ th[na + nb:])) / Ax
+
+    def resid(self, th: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The weighted output error (Y − Ŷ)·w, real parts then imaginary."""
+        e = (self.Y - self.model(th)[1]) * self.w
+        return np.concatenate([e.real, e.imag])
+
+
+def _basis(frd: FRD, num_order: int, den_order: int, delay_s: float | None, transient: bool,
+           weighting: Weighting) -> _Basis:
+    """The fit's :class:`_Basis`, its arguments checked."""
     if num_order < 0 or den_order < 1 or num_order > den_order:
         raise IdentificationError(
             f"orders num {num_order} / den {den_order} are not a proper model "
@@ -142,9 +227,8 @@ def _fit(frd: FRD, num_order: int, den_order: int, delay_s: float | None, transi
     U = np.asarray(frd.input_dft, dtype=complex)
     Y = np.asarray(frd.output_dft, dtype=complex)
     M = f.size
-    na, nb = den_order, num_order + 1
     n_i = den_order if transient else -1
-    n_unknown = na + nb + (n_i + 1)
+    n_unknown = den_order + num_order + 1 + (n_i + 1)
     if M < n_unknown:
         raise IdentificationError(f"{M} frequency bins are too few for {n_unknown} unknown coefficients")
     absY = np.abs(Y)
@@ -153,35 +237,35 @@ def _fit(frd: FRD, num_order: int, den_order: int, delay_s: float | None, transi
 
     s = 2j * np.pi * f
     w_scale = 2.0 * np.pi * float(f.max())
-    x = s / w_scale                                       # scaled Laplace variable
-    H = np.exp(-s * td) * (np.sinc(f / fs) ** 2 if hold else 1.0)
-    F = np.exp(s * Ts / 2.0) / np.sinc(f / fs) if hold else np.ones(M, complex)
+    x = s / w_scale
+
+    def powers(n: int) -> NDArray[np.complex128]:
+        return x[:, None] ** np.arange(n, -1, -1)[None, :]
+
     ymed = float(np.median(absY))
     w = {
         "balanced": 1.0 / np.sqrt(absY * ymed),
         "relative": 1.0 / absY,
         "uniform": np.full(M, 1.0 / ymed),
     }[weighting]
+    return _Basis(
+        fs=fs, td=td, hold=hold, s=s, w_scale=w_scale, U=U, Y=Y,
+        H=np.exp(-s * td) * (np.sinc(f / fs) ** 2 if hold else 1.0),
+        F=np.exp(s * Ts / 2.0) / np.sinc(f / fs) if hold else np.ones(M, complex), w=w,
+        Xa=powers(den_order), Xb=powers(num_order), Xi=powers(n_i) if transient else np.zeros((M, 0), complex))
 
-    def powers(n: int) -> NDArray[np.complex128]:
-        return x[:, None] ** np.arange(n, -1, -1)[None, :]
 
-    Xa = powers(na)                 # columns x^na … x^0
-    Xb = powers(num_order)
-    Xi = powers(n_i) if transient else np.zeros((M, 0), complex)
-
-    # θ = [a_{na−1}..a_0, b_{nb−1}..b_0, i…] in x; A monic in x.
-    # equation error: A·Y − H·B·U − F·I  =  cols·θ − rhs
-    cols = np.concatenate(
-        [Xa[:, 1:] * Y[:, None], -(H * U)[:, None] * Xb, -F[:, None] * Xi], axis=1
-    )
-    rhs = -Xa[:, 0] * Y
-    A_prev = np.ones(M, complex)
+def _sanathanan_koerner(b: _Basis, max_iterations: int, tol: float) -> tuple[NDArray[np.float64], int, bool]:
+    """θ of the iterations on the equation error A·Y − H·B·U − F·I (= cols·θ − rhs) divided by |A_prev|,
+    the iterations done, and whether the relative change of θ fell below ``tol``."""
+    Xa, na = b.Xa, b.na
+    cols = np.concatenate([Xa[:, 1:] * b.Y[:, None], -(b.H * b.U)[:, None] * b.Xb, -b.F[:, None] * b.Xi], axis=1)
+    rhs = -Xa[:, 0] * b.Y
+    A_prev = np.ones(b.Y.size, complex)
     theta = np.zeros(cols.shape[1])
-    converged = False
     it = 0
     for it in range(1, max_iterations + 1):
-        rw = w / np.abs(A_prev)
+        rw = b.w / np.abs(A_prev)
         Mr = np.concatenate([(cols * rw[:, None]).real, (cols * rw[:, None]).imag])
         rr = np.concatenate([(rhs * rw).real, (rhs * rw).imag])
         cn = np.linalg.norm(Mr, axis=0)
@@ -194,89 +278,42 @@ def _fit(frd: FRD, num_order: int, den_order: int, delay_s: float | None, transi
         theta = new
         A_prev = Xa[:, 0] + Xa[:, 1:] @ theta[:na]
         if it > 1 and change < tol:
-            converged = True
-            break
+            return theta, it, True
+    return theta, it, False
 
-    def model(th: NDArray[np.float64]) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+
+def _polished(b: _Basis, th0: NDArray[np.float64], delay: bool) -> tuple[NDArray[np.float64], float, float]:
+    """Gauss–Newton on the output error from th0; with ``delay`` also an extra delay δ [s]
+    (H·e^(−sδ)). Returns (θ, δ, sum of squared weighted errors)."""
+    na, nb, n_th, Ts = b.na, b.nb, th0.size, 1.0 / b.fs
+    Xa, Xb, Xi, s, w = b.Xa, b.Xb, b.Xi, b.s, b.w
+    sc = np.maximum(np.abs(th0), 1e-300)
+
+    def parts(z: NDArray[np.float64]):  # type: ignore[no-untyped-def]
+        th = z[:n_th] * sc
         Ax = Xa[:, 0] + Xa[:, 1:] @ th[:na]
-        Ix = Xi @ th[na + nb:]
-        return Ax, (H * (Xb @ th[na:na + nb]) * U + F * Ix) / Ax
+        Hd = b.H * np.exp(-s * (z[n_th] * Ts)) if delay else b.H
+        HBU = Hd * (Xb @ th[na:na + nb]) * b.U
+        return Ax, Hd, HBU, (HBU + b.F * (Xi @ th[na + nb:])) / Ax
 
-    def resid(th: NDArray[np.float64]) -> NDArray[np.float64]:
-        e = (Y - model(th)[1]) * w
+    def fun(z: NDArray[np.float64]) -> NDArray[np.float64]:
+        e = (b.Y - parts(z)[3]) * w
         return np.concatenate([e.real, e.imag])
 
-    def polished(th0: NDArray[np.float64], delay: bool) -> tuple[NDArray[np.float64], float, float]:
-        """Gauss–Newton on the output error from th0; with ``delay`` also an extra delay δ [s]
-        (H·e^(−sδ)). Returns (θ, δ, sum of squared weighted errors)."""
-        def parts(z: NDArray[np.float64]):  # type: ignore[no-untyped-def]
-            th = z[:n_th] * sc
-            Ax = Xa[:, 0] + Xa[:, 1:] @ th[:na]
-            Hd = H * np.exp(-s * (z[n_th] * Ts)) if delay else H
-            HBU = Hd * (Xb @ th[na:na + nb]) * U
-            return Ax, Hd, HBU, (HBU + F * (Xi @ th[na + nb:])) / Ax
+    def jac(z: NDArray[np.float64]) -> NDArray[np.float64]:
+        Ax, Hd, HBU, Yh = parts(z)
+        cols = [(Yh / Ax)[:, None] * Xa[:, 1:], -(Hd * b.U / Ax)[:, None] * Xb, -(b.F / Ax)[:, None] * Xi]
+        if delay:  # ∂e/∂δ = +s·H·e^(−sδ)·B·U/A (δ in samples)
+            cols.append((s * Ts * HBU / Ax)[:, None])
+        J = np.concatenate(cols, axis=1) * w[:, None]
+        J[:, :n_th] *= sc
+        return np.concatenate([J.real, J.imag])
 
-        def fun(z: NDArray[np.float64]) -> NDArray[np.float64]:
-            e = (Y - parts(z)[3]) * w
-            return np.concatenate([e.real, e.imag])
-
-        def jac(z: NDArray[np.float64]) -> NDArray[np.float64]:
-            Ax, Hd, HBU, Yh = parts(z)
-            cols = [(Yh / Ax)[:, None] * Xa[:, 1:], -(Hd * U / Ax)[:, None] * Xb,
-                    -(F / Ax)[:, None] * Xi]
-            if delay:  # ∂e/∂δ = +s·H·e^(−sδ)·B·U/A (δ in samples)
-                cols.append((s * Ts * HBU / Ax)[:, None])
-            J = np.concatenate(cols, axis=1) * w[:, None]
-            J[:, :n_th] *= sc
-            return np.concatenate([J.real, J.imag])
-
-        sc = np.maximum(np.abs(th0), 1e-300)
-        z0 = np.concatenate([np.ones(n_th), [0.0] if delay else []])
-        res = least_squares(fun, z0, jac=jac, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14,
-                            max_nfev=200)
-        if not np.all(np.isfinite(res.x)):
-            raise ValueError("the polish diverged")
-        return res.x[:n_th] * sc, (float(res.x[n_th]) * Ts if delay else 0.0), 2.0 * float(res.cost)
-
-    n_th = theta.size
-    if polish:
-        try:
-            th_p, _, ssq = polished(theta, False)
-            if ssq <= float(np.sum(resid(theta) ** 2)):
-                theta = th_p
-        except (ValueError, np.linalg.LinAlgError):
-            pass  # keep the SK result
-    if fit_delay:
-        try:
-            th_d, extra, ssq = polished(theta, True)
-        except (ValueError, np.linalg.LinAlgError):
-            extra, ssq = 0.0, math.inf
-        # kept only when it explains much of the error (see _DELAY_GAIN); H then carries it
-        # (the physical refit below and fit_error use the new H through model())
-        if extra > 0.0 and ssq <= _DELAY_GAIN ** 2 * float(np.sum(resid(theta) ** 2)):
-            theta, td, H = th_d, td + extra, H * np.exp(-s * extra)
-
-    num, den = _unscale(theta, na, num_order, w_scale)
-    constrained = False
-    if physical and (num_order, den_order) == (2, 3):
-        try:
-            from_velocity_tf(num, den)
-        except IdentificationError:
-            phys = _physical_fit(theta, Xa, Xb, Xi, H, F, U, Y, w, w_scale)
-            if phys is None:
-                raise IdentificationError(
-                    "the 2/3 fit is not a physical two-mass plant and no physical refit "
-                    "could be started from it (no anti-resonance below a resonance)"
-                ) from None
-            theta, constrained = phys, True
-            num, den = _unscale(theta, na, num_order, w_scale)
-
-    Yh = model(theta)[1]
-    fit_error = float(np.sqrt(np.mean(np.abs(Y - Yh) ** 2 / absY ** 2)))
-    return TransferFunctionFit(
-        num=num, den=den, delay_s=td, fit_error=fit_error, iterations=it,
-        converged=converged, sample_rate_hz=fs if hold else 0.0, constrained=constrained,
-    )
+    z0 = np.concatenate([np.ones(n_th), [0.0] if delay else []])
+    res = least_squares(fun, z0, jac=jac, method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14, max_nfev=200)
+    if not np.all(np.isfinite(res.x)):
+        raise ValueError("the polish diverged")
+    return res.x[:n_th] * sc, (float(res.x[n_th]) * Ts if delay else 0.0), 2.0 * float(res.cost)
 
 
 def _unscale(theta: NDArray[np.float64], na: int, num_order: int,
@@ -329,21 +366,22 @@ _DELAY_GAIN = 0.8
 _LOG_SPAN = 20.0
 
 
-def _physical_fit(theta, Xa, Xb, Xi, H, F, U, Y, w, w_scale):  # type: ignore[no-untyped-def]
+def _physical_fit(theta: NDArray[np.float64], b: _Basis) -> NDArray[np.float64] | None:
     """Refit in physical parameters with bounds, transient by variable projection.
 
     Parameters z = (ln J_m, ln J_l, ln K relative to the start, B_m/S0, B_l/S0,
     D/D0). Returns θ (scaled coefficients + transient) of the optimum, or None
     when no physical start exists.
     """
+    Xa, Xb, w_scale = b.Xa, b.Xb, b.w_scale
     p0 = _start_parameters(theta, w_scale)
     if p0 is None:
         return None
     S0 = p0.B_m + p0.B_l
     D0 = max(p0.D, 1e-3 * S0)
-    Fw = (F * w)[:, None] * Xi
-    Yw = Y * w
-    HUw = H * U * w
+    Fw = (b.F * b.w)[:, None] * b.Xi
+    Yw = b.Y * b.w
+    HUw = b.H * b.U * b.w
 
     def unpack(z: NDArray[np.float64]) -> TwoMassParameters:
         return TwoMassParameters(
