@@ -33,7 +33,8 @@ from __future__ import annotations
 import functools
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
@@ -179,19 +180,8 @@ def paper_identify(
     :raises IdentificationError: bad inputs, or the initial fit is not a physical plant.
     """
     t_total = time.perf_counter()
-    if estimate_frd is None:
-        from commission.ident.frd import estimate_frd as _est
-
-        # the method never reads the quality indicator: skip it (most of an FRD's time)
-        estimate_frd = functools.partial(_est, quality=False)
-    if fit_transfer_function is None:
-        from commission.ident.tffit import fit_transfer_function as _fit
-
-        fit_transfer_function = _fit
-    if from_velocity_tf is None:
-        from commission.ident.twomass import from_velocity_tf as _ftf
-
-        from_velocity_tf = _ftf
+    estimate_frd, fit_transfer_function, from_velocity_tf = _steps(estimate_frd, fit_transfer_function,
+                                                                   from_velocity_tf)
     tau = np.asarray(torque_ref, dtype=float)
     v_m = np.asarray(motor_velocity, dtype=float)
     if tau.shape != v_m.shape or tau.ndim != 1:
@@ -202,10 +192,8 @@ def paper_identify(
 
     timings = {"search": 0.0, "frd": 0.0, "fit": 0.0, "simulate": 0.0}
     params, delay_s = _linear_parameters(linear_fit, fs, from_velocity_tf)
-
-    t0 = time.perf_counter()
-    frd_meas = estimate_frd(tau, v_m, fs)
-    timings["frd"] += time.perf_counter() - t0
+    with _timed(timings, "frd"):
+        frd_meas = estimate_frd(tau, v_m, fs)
 
     iterations: list[PaperIteration] = []
     stop_reason = "max_iterations"
@@ -215,78 +203,113 @@ def paper_identify(
         def loss(eps: float, _p: TwoMassParameters = params, _d: int = d) -> float:
             return max_output_error(v_m, simulate_motor_velocity(_p, eps, tau, fs, delay_samples=_d))
 
-        # step 4
-        t0 = time.perf_counter()
-        if fixed_epsilon_rad is not None:
-            fe = float(fixed_epsilon_rad)
-            res = EpsilonSearch(epsilon_rad=fe, loss=loss(fe), evaluations=1, history=[],
-                                interval_rad=(fe, fe), method="grid")
-        elif search == "bayes":
-            kw = {"seed": seed, "rel_tol": rel_tol}
-            kw.update(bayes_kwargs or {})
-            res = search_epsilon_bayes(loss, bounds_rad, resolution_rad, **kw)
-        else:
-            res = search_epsilon_grid(loss, bounds_rad, resolution_rad, rel_tol=rel_tol)
-        loss0 = loss(0.0)
-        timings["search"] += time.perf_counter() - t0
+        with _timed(timings, "search"):  # step 4
+            res = _epsilon_search(loss, fixed_epsilon_rad, search, bounds_rad, resolution_rad, rel_tol, seed,
+                                  bayes_kwargs)
+            loss0 = loss(0.0)
         detected = fixed_epsilon_rad is not None or not (loss0 <= (1.0 + rel_tol) * res.loss)
         eps = res.epsilon_rad if detected else 0.0
-        # step 5
-        t0 = time.perf_counter()
-        sim = simulate_deadzone(params, eps, tau, fs, delay_samples=d)
-        sim0 = simulate_deadzone(params, 0.0, tau, fs, delay_samples=d) if eps > 0 else sim
-        timings["simulate"] += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        err = frd_error(frd_meas, estimate_frd(tau, sim.motor_velocity, fs), frd_band_hz)
-        timings["frd"] += time.perf_counter() - t0
+        with _timed(timings, "simulate"):  # step 5
+            sim = simulate_deadzone(params, eps, tau, fs, delay_samples=d)
+            sim0 = simulate_deadzone(params, 0.0, tau, fs, delay_samples=d) if eps > 0 else sim
+        with _timed(timings, "frd"):
+            err = frd_error(frd_meas, estimate_frd(tau, sim.motor_velocity, fs), frd_band_hz)
         iterations.append(PaperIteration(
             index=it, params=params, delay_s=delay_s, epsilon_rad=eps, backlash_detected=detected,
             loss=res.loss if detected else loss0, frd_error=err, search=res,
         ))
-        if err <= frd_tol:
-            stop_reason = "frd_tol"
+        if (stop := _stop_reason(iterations, frd_tol, it == max_iterations - 1)) is not None:
+            stop_reason = stop
             break
-        if it > 0 and err >= iterations[-2].frd_error:
-            stop_reason = "frd_error increased"
-            break
-        if it == max_iterations - 1:
-            break
-        if not detected or eps == 0.0:
-            stop_reason = "no backlash detected"
-            break
-        # step 6: remove the backlash's effect, refit
-        t0 = time.perf_counter()
-        if correction == "output":
-            frd_new = estimate_frd(tau, v_m - (sim.motor_velocity - sim0.motor_velocity), fs)
-        elif correction in ("input", "input_filtered"):
-            n_hat = nonlinear_torque(params, eps, sim.twist,
-                                     sim.motor_velocity_instant - sim.load_velocity_instant)
-            # the torque acting over [k, k+1) is tau[k − d + 1]: align n̂ with it
-            shift = d - 1
-            n_al = np.zeros_like(n_hat)
-            if shift >= 0:
-                n_al[: n_hat.size - shift] = n_hat[shift:]
-            else:
-                n_al[1:] = n_hat[:-1]
-            if correction == "input_filtered":
-                n_al = _load_reaction_filter(params, n_al, fs)
-            frd_new = estimate_frd(tau + n_al, v_m, fs)
-        else:
-            raise IdentificationError(f"unknown correction {correction!r}")
-        timings["frd"] += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        try:
-            fit = fit_transfer_function(frd_new)
-            params = from_velocity_tf(np.asarray(fit.num, float), np.asarray(fit.den, float))
-            delay_s = float(fit.delay_s)
-        except IdentificationError as err_fit:
-            timings["fit"] += time.perf_counter() - t0
-            stop_reason = f"refit failed: {err_fit}"
-            break
-        timings["fit"] += time.perf_counter() - t0
+        with _timed(timings, "frd"):  # step 6: remove the backlash's effect, refit
+            frd_new = _corrected_frd(estimate_frd, correction, tau, v_m, fs, params, eps, d, sim, sim0)
+        with _timed(timings, "fit"):
+            try:
+                fit = fit_transfer_function(frd_new)
+                params = from_velocity_tf(np.asarray(fit.num, float), np.asarray(fit.den, float))
+                delay_s = float(fit.delay_s)
+            except IdentificationError as err_fit:
+                stop_reason = f"refit failed: {err_fit}"
+                break
 
     best = min(iterations, key=lambda r: r.frd_error)
     timings["total"] = time.perf_counter() - t_total
     return PaperIdentification(params=best.params, epsilon_rad=best.epsilon_rad, delay_s=best.delay_s,
                                frd_error=best.frd_error, backlash_detected=best.backlash_detected,
                                iterations=tuple(iterations), stop_reason=stop_reason, timings_s=timings)
+
+
+def _steps(estimate_frd: Callable[..., Any] | None, fit_transfer_function: Callable[..., Any] | None,
+           from_velocity_tf: Callable[[Any, Any], TwoMassParameters] | None) -> tuple[
+               Callable[..., Any], Callable[..., Any], Callable[[Any, Any], TwoMassParameters]]:
+    """Steps 2, 3 and the coefficient → parameter map: the package's own where not given."""
+    if estimate_frd is None:
+        from commission.ident.frd import estimate_frd as _est
+
+        # the method never reads the quality indicator: skip it (most of an FRD's time)
+        estimate_frd = functools.partial(_est, quality=False)
+    if fit_transfer_function is None:
+        from commission.ident.tffit import fit_transfer_function
+    if from_velocity_tf is None:
+        from commission.ident.twomass import from_velocity_tf
+    return estimate_frd, fit_transfer_function, from_velocity_tf
+
+
+def _corrected_frd(estimate_frd: Callable[..., Any], correction: str, tau: NDArray[np.float64],
+                   v_m: NDArray[np.float64], fs: float, params: TwoMassParameters, eps: float, d: int,
+                   sim: Any, sim0: Any) -> Any:
+    """Step 6: the FRD with the backlash's effect removed, by ``correction`` (module docstring); ``sim``,
+    ``sim0`` the dead-zone simulations at ε and at 0, ``d`` the delay [samples]."""
+    if correction == "output":
+        return estimate_frd(tau, v_m - (sim.motor_velocity - sim0.motor_velocity), fs)
+    if correction not in ("input", "input_filtered"):
+        raise IdentificationError(f"unknown correction {correction!r}")
+    n_hat = nonlinear_torque(params, eps, sim.twist, sim.motor_velocity_instant - sim.load_velocity_instant)
+    # the torque acting over [k, k+1) is tau[k − d + 1]: align n̂ with it
+    shift = d - 1
+    n_al = np.zeros_like(n_hat)
+    if shift >= 0:
+        n_al[: n_hat.size - shift] = n_hat[shift:]
+    else:
+        n_al[1:] = n_hat[:-1]
+    if correction == "input_filtered":
+        n_al = _load_reaction_filter(params, n_al, fs)
+    return estimate_frd(tau + n_al, v_m, fs)
+
+
+def _stop_reason(iterations: list[PaperIteration], frd_tol: float, last: bool) -> str | None:
+    """Why the passes stop after the latest of ``iterations`` (``last``: no pass is left), or None."""
+    r = iterations[-1]
+    if r.frd_error <= frd_tol:
+        return "frd_tol"
+    if len(iterations) > 1 and r.frd_error >= iterations[-2].frd_error:
+        return "frd_error increased"
+    if last:
+        return "max_iterations"
+    if not r.backlash_detected or r.epsilon_rad == 0.0:
+        return "no backlash detected"
+    return None
+
+
+@contextmanager
+def _timed(timings: dict[str, float], key: str) -> Iterator[None]:
+    """Adds the block's wall time [s] to ``timings[key]``."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        timings[key] += time.perf_counter() - t0
+
+
+def _epsilon_search(loss: Callable[[float], float], fixed_epsilon_rad: float | None, search: str,
+                    bounds_rad: tuple[float, float], resolution_rad: float, rel_tol: float, seed: int,
+                    bayes_kwargs: dict[str, Any] | None) -> EpsilonSearch:
+    """Step 4: ε of the smallest ``loss`` by ``search`` ("bayes" or "grid"), or ``fixed_epsilon_rad``."""
+    if fixed_epsilon_rad is not None:
+        fe = float(fixed_epsilon_rad)
+        return EpsilonSearch(epsilon_rad=fe, loss=loss(fe), evaluations=1, history=[], interval_rad=(fe, fe),
+                             method="grid")
+    if search == "bayes":
+        return search_epsilon_bayes(loss, bounds_rad, resolution_rad,
+                                    **{"seed": seed, "rel_tol": rel_tol, **(bayes_kwargs or {})})
+    return search_epsilon_grid(loss, bounds_rad, resolution_rad, rel_tol=rel_tol)
