@@ -28,6 +28,7 @@ import math
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -96,92 +97,25 @@ def minimize_on_grid(fun: Callable[[float], float], grid: ArrayLike, *, n_initia
     if unknown:
         raise IdentificationError(f"unknown stop_when rules: {sorted(unknown)}")
     n_initial = int(min(max(n_initial, 2), n))
-    max_evaluations = int(min(max(max_evaluations, n_initial), n))
-
-    cache: dict[int, float] = {}
-    history: list[tuple[float, float]] = []
-
-    def evaluate(i: int) -> float:
-        if i not in cache:
-            v = float(fun(float(g[i])))
-            if not math.isfinite(v) or (log_loss and v <= 0.0):
-                if log_loss and v == 0.0:
-                    v = _TINY
-                else:
-                    raise IdentificationError(f"loss at grid[{i}] = {g[i]!r} is {v!r}")
-            cache[i] = v
-            history.append((float(g[i]), v))
-        return cache[i]
-
-    def to_model(v: float) -> float:
-        return math.log(max(v, _TINY)) if log_loss else v
-
-    state = {"calls": 0, "repeats": 0, "stopped_by": "exhausted", "model": None}
-
-    def objective(x: list[float]) -> float:
-        i = int(np.clip(round(float(x[0])), 0, n - 1))
-        state["calls"] += 1
-        if i in cache:
-            state["repeats"] += 1
-        else:
-            state["repeats"] = 0
-        return to_model(evaluate(i))
-
+    run = _GridSearch(fun, g, log_loss, stop_when, int(min(max(max_evaluations, n_initial), n)), ei_tol, xi,
+                      repeat_limit, min_iterations)
     space = [Real(0.0, float(n - 1), name="index")]
-    init_idx = np.unique(np.round(np.linspace(0, n - 1, n_initial)).astype(int))
-    x0 = [[float(i)] for i in init_idx]
-    grid_pts = np.arange(n, dtype=float).reshape(-1, 1)
-
-    def callback(res) -> bool:
-        if len(cache) >= max_evaluations:
-            state["stopped_by"] = "max_evaluations"
-            return True
-        if "repeat" in stop_when and state["repeats"] >= repeat_limit:
-            state["stopped_by"] = "repeat"
-            return True
-        if res.models:
-            model = res.models[-1]
-            state["model"] = (model, res.space)
-            if "ei" in stop_when and len(res.x_iters) >= len(x0) + min_iterations:
-                todo = np.array([i for i in range(n) if i not in cache])
-                if todo.size == 0:
-                    state["stopped_by"] = "exhausted"
-                    return True
-                mu, sd = model.predict(res.space.transform(grid_pts[todo].tolist()), return_std=True)
-                f_min = min(to_model(v) for v in cache.values())
-                if float(np.max(_expected_improvement(mu, sd, f_min, xi))) < ei_tol:
-                    state["stopped_by"] = "ei"
-                    return True
-        if len(cache) >= n:
-            state["stopped_by"] = "exhausted"
-            return True
-        return False
-
-    budget = max(3 * max_evaluations, len(x0) + 5)
+    run.x0 = [[float(i)] for i in np.unique(np.round(np.linspace(0, n - 1, n_initial)).astype(int))]
+    budget = max(3 * run.max_evaluations, len(run.x0) + 5)
     with threadpool_limits(1), warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        gp_minimize(objective, space, x0=x0, n_initial_points=0, n_calls=budget, acq_func="EI", xi=xi,
+        gp_minimize(run.objective, space, x0=run.x0, n_initial_points=0, n_calls=budget, acq_func="EI", xi=xi,
                     acq_optimizer=acq_optimizer, n_points=n_points, random_state=int(seed),
-                    callback=[callback])
-    if state["stopped_by"] == "exhausted" and len(cache) < n and state["calls"] >= budget:
-        state["stopped_by"] = "budget"
-
+                    callback=[run.callback])
+    if run.stopped_by == "exhausted" and len(run.cache) < n and run.calls >= budget:
+        run.stopped_by = "budget"
     if "local_min" in stop_when:
-        while True:
-            ib = min(cache, key=cache.__getitem__)
-            moved = False
-            for j in (ib - 1, ib + 1):
-                if 0 <= j < n and j not in cache and len(cache) < n:
-                    evaluate(j)
-                    if cache[j] < cache[ib]:
-                        moved = True
-                        break
-            if not moved:
-                break
+        run.descend()
 
+    cache = run.cache
     ib = min(cache, key=cache.__getitem__)
     fb = cache[ib]
-    lower = _optimistic_bounds(state["model"], grid_pts, n, log_loss)
+    lower = _optimistic_bounds(run.model, run.grid_pts, n, log_loss)
 
     def loss_at(i: int) -> tuple[float, float]:
         if i in cache:
@@ -192,8 +126,90 @@ def minimize_on_grid(fun: Callable[[float], float], grid: ArrayLike, *, n_initia
 
     interval = epsilon_interval(g, loss_at, ib, fb, rel_tol)
     return GridMinimization(x=float(g[ib]), fun=float(fb), index=int(ib), evaluations=len(cache),
-                            history=history, interval=interval, stopped_by=str(state["stopped_by"]),
-                            optimizer_calls=int(state["calls"]))
+                            history=run.history, interval=interval, stopped_by=run.stopped_by,
+                            optimizer_calls=run.calls)
+
+
+class _GridSearch:
+    """One :func:`minimize_on_grid`: the losses met (``cache`` by grid index, ``history`` in call order),
+    the objective and the stop rules ``gp_minimize`` calls back, and why it stopped."""
+
+    def __init__(self, fun: Callable[[float], float], g: NDArray[np.float64], log_loss: bool,
+                 stop_when: Sequence[str], max_evaluations: int, ei_tol: float, xi: float, repeat_limit: int,
+                 min_iterations: int) -> None:
+        self.fun, self.g, self.n, self.log_loss = fun, g, g.size, log_loss
+        self.stop_when, self.max_evaluations, self.ei_tol, self.xi = stop_when, max_evaluations, ei_tol, xi
+        self.repeat_limit, self.min_iterations = repeat_limit, min_iterations
+        self.cache: dict[int, float] = {}
+        self.history: list[tuple[float, float]] = []
+        self.calls = self.repeats = 0
+        self.stopped_by = "exhausted"
+        self.model: Any = None
+        self.x0: list[list[float]] = []
+        self.grid_pts = np.arange(self.n, dtype=float).reshape(-1, 1)
+
+    def evaluate(self, i: int) -> float:
+        if i not in self.cache:
+            v = float(self.fun(float(self.g[i])))
+            if not math.isfinite(v) or (self.log_loss and v <= 0.0):
+                if self.log_loss and v == 0.0:
+                    v = _TINY
+                else:
+                    raise IdentificationError(f"loss at grid[{i}] = {self.g[i]!r} is {v!r}")
+            self.cache[i] = v
+            self.history.append((float(self.g[i]), v))
+        return self.cache[i]
+
+    def to_model(self, v: float) -> float:
+        return math.log(max(v, _TINY)) if self.log_loss else v
+
+    def objective(self, x: list[float]) -> float:
+        i = int(np.clip(round(float(x[0])), 0, self.n - 1))
+        self.calls += 1
+        self.repeats = self.repeats + 1 if i in self.cache else 0
+        return self.to_model(self.evaluate(i))
+
+    def callback(self, res: Any) -> bool:
+        """True (stop) by the rules of ``stop_when`` (module docstring), the budget, or a grid used up."""
+        cache = self.cache
+        if len(cache) >= self.max_evaluations:
+            self.stopped_by = "max_evaluations"
+            return True
+        if "repeat" in self.stop_when and self.repeats >= self.repeat_limit:
+            self.stopped_by = "repeat"
+            return True
+        if res.models:
+            model = res.models[-1]
+            self.model = (model, res.space)
+            if "ei" in self.stop_when and len(res.x_iters) >= len(self.x0) + self.min_iterations:
+                todo = np.array([i for i in range(self.n) if i not in cache])
+                if todo.size == 0:
+                    self.stopped_by = "exhausted"
+                    return True
+                mu, sd = model.predict(res.space.transform(self.grid_pts[todo].tolist()), return_std=True)
+                f_min = min(self.to_model(v) for v in cache.values())
+                if float(np.max(_expected_improvement(mu, sd, f_min, self.xi))) < self.ei_tol:
+                    self.stopped_by = "ei"
+                    return True
+        if len(cache) >= self.n:
+            self.stopped_by = "exhausted"
+            return True
+        return False
+
+    def descend(self) -> None:
+        """The "local_min" rule: the best's unevaluated neighbours evaluated until it is a local minimum."""
+        cache, n = self.cache, self.n
+        while True:
+            ib = min(cache, key=cache.__getitem__)
+            moved = False
+            for j in (ib - 1, ib + 1):
+                if 0 <= j < n and j not in cache and len(cache) < n:
+                    self.evaluate(j)
+                    if cache[j] < cache[ib]:
+                        moved = True
+                        break
+            if not moved:
+                break
 
 
 def _optimistic_bounds(model_space, grid_pts: NDArray[np.float64], n: int, log_loss: bool) -> NDArray[np.float64] | None:
