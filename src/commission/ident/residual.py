@@ -729,32 +729,12 @@ def prepare_residual(
     zi = sosfilt_zi(sos)
     padlen = 3 * (2 * sos.shape[0] + 1 - min(int((sos[:, 2] == 0).sum()), int((sos[:, 5] == 0).sum())))
     lp = lambda a: _filtfilt_decimate(sos, zi, a, padlen, decimation)  # noqa: E731
-    xl = None
-    twist0 = 0.0
-    if load_position is not None:
-        xl = np.asarray(load_position, dtype=np.float64)
-        if xl.shape[0] != n:
-            raise IdentificationError("load position and motor position differ in length")
-        if motor_position is not None:
-            x_m0 = float(np.asarray(motor_position, dtype=np.float64)[0])
-            twist0 = x_m0 - float(xl[0])
-            xl = np.ascontiguousarray(xl - x_m0)
-        else:  # motor rebuilt from velocity: no common origin, assume centred gears
-            xl = np.ascontiguousarray(xl - xl[0])
+    xl, twist0 = _load_origin(load_position, motor_position, n)
     if initial_twist_rad is not None:
         twist0 = float(initial_twist_rad)
     if not velocity_scale_rad_s > 0.0:
         raise IdentificationError(f"velocity scale {velocity_scale_rad_s} rad/s must be positive")
-    # motor Coulomb: triangle average of tanh(ẋ_m/v_s) with ẋ_m from the position spline,
-    # by 8-point Gauss–Legendre per sample interval (a reversal inside an interval is then
-    # weighted where it happens, not at the interval's chord velocity)
-    gx, gw = np.polynomial.legendre.leggauss(8)
-    sq = 0.5 * (gx + 1.0)
-    vq = ((3.0 * spline[:, 0:1] * sq + 2.0 * spline[:, 1:2]) * sq + spline[:, 2:3]) * fs
-    sgn = np.tanh(vq / velocity_scale_rad_s)
-    w_up = 0.5 * gw * sq          # ∫ s·f(s) ds on [0, 1]: the interval before sample k
-    w_dn = 0.5 * gw * (1.0 - sq)  # ∫ (1 − s)·f(s) ds: the interval after sample k
-    coul = sgn[:-1] @ w_up + sgn[1:] @ w_dn
+    coul = _coulomb_average(spline, fs, velocity_scale_rad_s)
     rate = np.diff(tau)[:-1] * fs  # (τ_ref[k] − τ_ref[k−1])/Ts at samples 1 … N−2
     keep = None
     if lost is not None and np.any(lost):
@@ -770,6 +750,34 @@ def prepare_residual(
         coulomb=coul, coulomb_f=lp(np.ascontiguousarray(coul)), torque_rate_f=lp(np.ascontiguousarray(rate)),
         torque_ref=np.ascontiguousarray(tau), velocity_scale_rad_s=float(velocity_scale_rad_s), keep=keep,
     )
+
+
+def _load_origin(load_position: NDArray[np.float64] | None, motor_position: NDArray[np.float64] | None,
+                 n: int) -> tuple[NDArray[np.float64] | None, float]:
+    """The load position [rad] from the motor's origin (shape (N,), None without one) and the twist at
+    sample 0 [rad] it shows."""
+    if load_position is None:
+        return None, 0.0
+    xl = np.asarray(load_position, dtype=np.float64)
+    if xl.shape[0] != n:
+        raise IdentificationError("load position and motor position differ in length")
+    if motor_position is None:  # motor rebuilt from velocity: no common origin, assume centred gears
+        return np.ascontiguousarray(xl - xl[0]), 0.0
+    x_m0 = float(np.asarray(motor_position, dtype=np.float64)[0])
+    return np.ascontiguousarray(xl - x_m0), x_m0 - float(xl[0])
+
+
+def _coulomb_average(spline: NDArray[np.float64], fs: float, velocity_scale_rad_s: float) -> NDArray[np.float64]:
+    """The motor Coulomb regressor at samples 1 … N−2: the triangle average of tanh(ẋ_m/v_s) with ẋ_m
+    from the position's cubic ``spline`` (N−1, 4), by 8-point Gauss–Legendre per sample interval (a
+    reversal inside an interval is then weighted where it happens, not at the interval's chord velocity)."""
+    gx, gw = np.polynomial.legendre.leggauss(8)
+    sq = 0.5 * (gx + 1.0)
+    vq = ((3.0 * spline[:, 0:1] * sq + 2.0 * spline[:, 1:2]) * sq + spline[:, 2:3]) * fs
+    sgn = np.tanh(vq / velocity_scale_rad_s)
+    w_up = 0.5 * gw * sq          # ∫ s·f(s) ds on [0, 1]: the interval before sample k
+    w_dn = 0.5 * gw * (1.0 - sq)  # ∫ (1 − s)·f(s) ds: the interval after sample k
+    return sgn[:-1] @ w_up + sgn[1:] @ w_dn
 
 
 def motor_interpolant(x: NDArray[np.float64], interpolation: str = "local") -> NDArray[np.float64]:
