@@ -393,6 +393,8 @@ def _predict(x: NDArray[np.float64], tk: float, fmk: float, Fcm: float, Fcl: flo
 
 #: Sigma points along the twist (Gauss–Hermite, 3 points: offsets 0, ±√3·σ_s, weights 2/3, 1/6, 1/6).
 _SIGMA = math.sqrt(3.0)
+_SIGMA_OFFSET = np.array([0.0, _SIGMA, -_SIGMA])
+_SIGMA_WEIGHT = np.array([2.0 / 3.0, 1.0 / 6.0, 1.0 / 6.0])
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -421,8 +423,6 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
     Fs = np.empty((3, n, n))
     Pc = np.empty((n, n))
     col = np.empty(n)
-    w = np.array([2.0 / 3.0, 1.0 / 6.0, 1.0 / 6.0])
-    off = np.array([0.0, _SIGMA, -_SIGMA])
     steady = False
     events = 0
     for k in range(N - 1):
@@ -447,60 +447,11 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
                         x[i] += G_st[o, i] * innov
                 continue
             # P ← F P Fᵀ + Q: F the interval's mode's Φ, or across a switch the saltated flow's linearization
-            F = Msw if switch else Phi[m]
-            _product(F, P, T)
-            for i in range(n):
-                for j in range(i, n):
-                    acc = Q[m, i, j]
-                    for l in range(n):
-                        acc += T[i, l] * F[j, l]
-                    P[i, j] = acc
-                    P[j, i] = acc
+            _propagate(Msw if switch else Phi[m], P, Q[m], T)
         else:
-            # three points along the twist's direction in the state (x ± √3·P[:,2]/σ_s), each through its own
-            # modes; the rest of the covariance (given the twist) through each point's flow
-            sd = math.sqrt(P[2, 2])
-            for i in range(n):
-                col[i] = P[i, 2] / sd
-            for i in range(n):
-                for j in range(n):
-                    Pc[i, j] = P[i, j] - col[i] * col[j]
-            m0 = 0
-            for p in range(3):
-                for i in range(n):
-                    xs[p, i] = x[i] + off[p] * col[i]
-                mp, sw, ev = _predict(xs[p], tau[k], fm[k], Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, V, lam, Vi, Bc,
-                                      jump, u, xes[p], Msw)
-                if p == 0:
-                    m0 = mp
-                    events += ev
-                if sw:
-                    Fs[p, :, :] = Msw
-                else:
-                    Fs[p, :, :] = Phi[mp]
-            for i in range(n):
-                acc = 0.0
-                for p in range(3):
-                    acc += w[p] * xes[p, i]
-                x[i] = acc
-            for i in range(n):
-                for j in range(i, n):
-                    acc = Q[m0, i, j]
-                    for p in range(3):
-                        acc += w[p] * (xes[p, i] - x[i]) * (xes[p, j] - x[j])
-                    P[i, j] = acc
-            for p in range(3):
-                _product(Fs[p], Pc, T)
-                for i in range(n):
-                    for j in range(i, n):
-                        acc = 0.0
-                        for l in range(n):
-                            acc += T[i, l] * Fs[p, j, l]
-                        P[i, j] += w[p] * acc
-            for i in range(n):
-                for j in range(i + 1, n):
-                    P[j, i] = P[i, j]
-            m = m0
+            m, ev = _sigma_predict(x, P, tau[k], fm[k], Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, V, lam, Vi, Bc, jump,
+                                   Q, u, Msw, xs, xes, Fs, Pc, col, T)
+            events += ev
             switch = True  # never a steady sample
         if not measured[k + 1]:
             steady = False
@@ -508,36 +459,121 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
                 e[k, o] = 0.0
                 S_out[k, o] = R[o]
             continue
-        for o in range(nout):  # sequential scalar updates (independent encoders)
-            if o == 0:
-                innov = y[k + 1] - x[0]
-                for i in range(n):
-                    g[i] = P[i, 0]
-                S = R[0] + g[0]
-            else:
-                innov = yl[k + 1] - (x[0] - x[2])
-                for i in range(n):
-                    g[i] = P[i, 0] - P[i, 2]
-                S = R[1] + g[0] - g[2]
-            e[k, o] = innov
-            S_out[k, o] = S
-            S_st[o] = S
-            for i in range(n):
-                G_st[o, i] = g[i] / S
-                x[i] += g[i] / S * innov
-            for i in range(n):
-                for j in range(n):
-                    P[i, j] -= g[i] * g[j] / S
+        _update(x, P, y[k + 1], yl[k + 1], R, e[k], S_out[k], S_st, G_st, g)
         # steady once a contact interval leaves the covariance where the last one did (to ~1e-12)
-        change = 0.0
-        size = 0.0
+        steady = _settled(P, P_last) and m == 1 and not switch
+    return events
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _propagate(F: NDArray[np.float64], P: NDArray[np.float64], Qm: NDArray[np.float64], T: NDArray[np.float64]) -> None:
+    """P ← F·P·Fᵀ + Q_m, symmetric (T: scratch)."""
+    n = P.shape[0]
+    _product(F, P, T)
+    for i in range(n):
+        for j in range(i, n):
+            acc = Qm[i, j]
+            for l in range(n):
+                acc += T[i, l] * F[j, l]
+            P[i, j] = acc
+            P[j, i] = acc
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _sigma_predict(x: NDArray[np.float64], P: NDArray[np.float64], tk: float, fmk: float, Fcm: float, Fcl: float,
+                   eps: float, Ts: float, Phi: NDArray[np.float64], Gam: NDArray[np.float64], PhiH: NDArray[np.float64],
+                   GamH: NDArray[np.float64], V: NDArray[np.complex128], lam: NDArray[np.complex128],
+                   Vi: NDArray[np.complex128], Bc: NDArray[np.float64], jump: NDArray[np.float64],
+                   Q: NDArray[np.float64], u: NDArray[np.float64], Msw: NDArray[np.float64], xs: NDArray[np.float64],
+                   xes: NDArray[np.float64], Fs: NDArray[np.float64], Pc: NDArray[np.float64],
+                   col: NDArray[np.float64], T: NDArray[np.float64]) -> tuple[int, int]:
+    """One sample's prediction of ``x`` and ``P`` by three points along the twist's direction in the state
+    (x ± √3·P[:,2]/σ_s), each through its own modes; the rest of the covariance (given the twist) through
+    each point's flow. Returns (the mean point's mode at the start, its contact events)."""
+    n = x.size
+    sd = math.sqrt(P[2, 2])
+    for i in range(n):
+        col[i] = P[i, 2] / sd
+    for i in range(n):
+        for j in range(n):
+            Pc[i, j] = P[i, j] - col[i] * col[j]
+    m0 = 0
+    events = 0
+    for p in range(3):
+        for i in range(n):
+            xs[p, i] = x[i] + _SIGMA_OFFSET[p] * col[i]
+        mp, sw, ev = _predict(xs[p], tk, fmk, Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, V, lam, Vi, Bc, jump, u,
+                              xes[p], Msw)
+        if p == 0:
+            m0, events = mp, ev
+        Fs[p, :, :] = Msw if sw else Phi[mp]
+    for i in range(n):
+        acc = 0.0
+        for p in range(3):
+            acc += _SIGMA_WEIGHT[p] * xes[p, i]
+        x[i] = acc
+    for i in range(n):
+        for j in range(i, n):
+            acc = Q[m0, i, j]
+            for p in range(3):
+                acc += _SIGMA_WEIGHT[p] * (xes[p, i] - x[i]) * (xes[p, j] - x[j])
+            P[i, j] = acc
+    for p in range(3):
+        _product(Fs[p], Pc, T)
+        for i in range(n):
+            for j in range(i, n):
+                acc = 0.0
+                for l in range(n):
+                    acc += T[i, l] * Fs[p, j, l]
+                P[i, j] += _SIGMA_WEIGHT[p] * acc
+    for i in range(n):
+        for j in range(i + 1, n):
+            P[j, i] = P[i, j]
+    return m0, events
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _update(x: NDArray[np.float64], P: NDArray[np.float64], y1: float, yl1: float, R: NDArray[np.float64],
+            e_k: NDArray[np.float64], S_k: NDArray[np.float64], S_st: NDArray[np.float64], G_st: NDArray[np.float64],
+            g: NDArray[np.float64]) -> None:
+    """The measurement update at one sample, by sequential scalar updates (independent encoders): the motor
+    position ``y1``, then (with two outputs) the load's ``yl1``. Writes the innovations into ``e_k`` and
+    their variances into ``S_k``, and keeps the gains (``G_st``, ``S_st``) for the steady state."""
+    n = x.size
+    for o in range(e_k.size):
+        if o == 0:
+            innov = y1 - x[0]
+            for i in range(n):
+                g[i] = P[i, 0]
+            S = R[0] + g[0]
+        else:
+            innov = yl1 - (x[0] - x[2])
+            for i in range(n):
+                g[i] = P[i, 0] - P[i, 2]
+            S = R[1] + g[0] - g[2]
+        e_k[o] = innov
+        S_k[o] = S
+        S_st[o] = S
+        for i in range(n):
+            G_st[o, i] = g[i] / S
+            x[i] += g[i] / S * innov
         for i in range(n):
             for j in range(n):
-                change = max(change, abs(P[i, j] - P_last[i, j]))
-                size = max(size, abs(P[i, j]))
-                P_last[i, j] = P[i, j]
-        steady = m == 1 and not switch and change <= _STEADY * size
-    return events
+                P[i, j] -= g[i] * g[j] / S
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _settled(P: NDArray[np.float64], P_last: NDArray[np.float64]) -> bool:
+    """Whether ``P`` is where ``P_last`` was, to ``_STEADY`` of its size; ``P_last`` ← ``P``."""
+    n = P.shape[0]
+    change = 0.0
+    size = 0.0
+    for i in range(n):
+        for j in range(n):
+            change = max(change, abs(P[i, j] - P_last[i, j]))
+            size = max(size, abs(P[i, j]))
+            P_last[i, j] = P[i, j]
+    return change <= _STEADY * size
 
 
 def innovations(problem: KalmanProblem, params: TwoMassParameters, epsilon_rad: float, *,
