@@ -278,6 +278,181 @@ def _exact_contact(cm: NDArray[np.float64], c: NDArray[np.float64], k: int, Ts: 
     return xn, vn, i0, i1, side * (xc - xn - side * eps), side * (dc - vn * Ts)
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _contact_step(cs: NDArray[np.float64], s: float, Ts: float, xl: float, vl: float, side: float, eps: float,
+                  kj: float, dj: float, bj: float, cj: float, ivs: float, cm: NDArray[np.float64], friction: bool
+                  ) -> tuple[float, float, float, float, float, float, float]:
+    """One step in contact from k+s (the interval's motor ``cs``, (1, 4)) to its end, exact or RK4, with the
+    quadratures of y and s·y; cut into ceil(rate·h/_STIFF_STEP) parts where the load speed is, or may get,
+    within _STIFF_ZONE·v_s of zero (the stiff zone of the Coulomb smooth sign, rate cj·ivs).
+
+    Returns (x_l, v_l, ∫y ds, ∫s·y ds, the step's end s, penetration and its rate there
+    (:func:`_rk4_contact`))."""
+    send = 1.0
+    if cj != 0.0:
+        rate_h = cj * ivs * (1.0 - s) * Ts / _STIFF_STEP
+        if rate_h > 1.0:
+            xa, da = _motor(cs, 0, s)
+            _, a0 = _accel(xa, da / Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+            if abs(vl) * ivs < _STIFF_ZONE + abs(a0) * (1.0 - s) * Ts * ivs:
+                send = s + (1.0 - s) / min(math.ceil(rate_h), _MAX_STIFF_PARTS)
+    if send == 1.0 and s == 0.0:
+        if not friction:  # the common case: a whole interval, linear
+            xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, cs, 0, Ts, xl, vl, side, eps, 0.0)
+            return xn, vn, i0, i1, send, p1, dp1e
+        if abs(vl) * ivs > _SATURATED:
+            # the load moves fast enough that the smooth sign is ±1 in float64 over the
+            # whole interval (checked at its end): a constant force, the step is exact
+            sg = 1.0 if vl > 0.0 else -1.0
+            xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, cs, 0, Ts, xl, vl, side, eps, sg * cj / kj)
+            if vn * sg * ivs > _SATURATED:
+                return xn, vn, i0, i1, send, p1, dp1e
+    if send == 1.0:  # the interval's end as a constant: a few % faster
+        xn, vn, i0, i1, p1, dp1e = _rk4_contact(cs, 0, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+    else:
+        xn, vn, i0, i1, p1, dp1e = _rk4_contact(cs, 0, s, send, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+    return xn, vn, i0, i1, send, p1, dp1e
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _separation(cs: NDArray[np.float64], s: float, send: float, Ts: float, xl: float, vl: float, side: float,
+                eps: float, kj: float, dj: float, bj: float, cj: float, ivs: float, xn: float, vn: float, i0: float,
+                i1: float, p1: float, dp1e: float) -> tuple[bool, float, float, float, float, float]:
+    """Whether the contact step from k+s to k+send (ending at xn, vn, i0, i1, penetration p1 and its rate
+    dp1e) separates: the penetration p = side·y scanned on the step's cubic Hermite interpolant (interior
+    points for grazes), bisected, then polished by Newton steps on the actual RK4 step length, so that
+    the impact torque D·ẏ is switched off where the integrated trajectory really reaches the boundary.
+    Returns (separated, the step's end, x_l, v_l, ∫y ds, ∫s·y ds), the step unchanged if not."""
+    h = (send - s) * Ts
+    xa, da = _motor(cs, 0, s)
+    p0 = side * (xa - xl - side * eps)
+    dp0 = side * (da / Ts - vl) * h
+    dp1 = dp1e * (send - s)
+    hit = -1.0
+    lo = 0.0
+    # Hermite cubic ≥ min(p0, p1) − (4/27)(|dp0| + |dp1|): skip the scan when safe
+    jstart = 1
+    if min(p0, p1) > _HERMITE_BOUND * (abs(dp0) + abs(dp1)):
+        jstart = _GRAZE_POINTS + 2
+    for j in range(jstart, _GRAZE_POINTS + 2):
+        u = j / (_GRAZE_POINTS + 1.0)
+        if _hermite(p0, dp0, p1, dp1, u) < 0.0:
+            hit = u
+            break
+        lo = u
+    if not hit > 0.0:
+        return False, send, xn, vn, i0, i1
+    hi = hit
+    for _ in range(_BISECT_ITERATIONS):
+        mid = 0.5 * (lo + hi)
+        if _hermite(p0, dp0, p1, dp1, mid) < 0.0:
+            hi = mid
+        else:
+            lo = mid
+    se = s + hi * (send - s)
+    # Newton on the actual RK4 step length
+    xn, vn, i0, i1, pe, dpe = _rk4_contact(cs, 0, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+    for _ in range(4):
+        if abs(pe) <= 1e-15 or dpe == 0.0:
+            break
+        sn = se - pe / dpe
+        if not (s < sn <= send):
+            break
+        xq, vq, iq0, iq1, pq, dpq = _rk4_contact(cs, 0, s, sn, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+        if abs(pq) >= abs(pe):
+            break
+        se, xn, vn, i0, i1, pe, dpe = sn, xq, vq, iq0, iq1, pq, dpq
+    return True, se, xn, vn, i0, i1
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _gap_step(cs: NDArray[np.float64], s: float, Ts: float, xl: float, vl: float, bj: float, cj: float, ivs: float,
+              eps: float) -> tuple[float, float, float, float, int]:
+    """One step in the gap from k+s to the interval's end or the contact: the load's free decay exact, the
+    motor the spline's; |z| = ε scanned on z's cubic Hermite interpolant, then bisected on the exact z(s).
+    Returns (x_l, v_l, s, side (0: still in the gap), contact events (0 or 1))."""
+    h = (1.0 - s) * Ts
+    xa, da = _motor(cs, 0, s)
+    xc, dc = _motor(cs, 0, 1.0)
+    xn, vn = _gap_state(xl, vl, bj, h, cj, ivs, Ts)
+    z0 = xa - xl
+    z1 = xc - xn
+    dz0 = (da / Ts - vl) * h
+    dz1 = (dc / Ts - vn) * h
+    hit = -1.0
+    lo = 0.0
+    jstart = 1
+    if max(abs(z0), abs(z1)) + _HERMITE_BOUND * (abs(dz0) + abs(dz1)) < eps:
+        jstart = _GRAZE_POINTS + 2
+    for j in range(jstart, _GRAZE_POINTS + 2):
+        u = j / (_GRAZE_POINTS + 1.0)
+        zu = _hermite(z0, dz0, z1, dz1, u)
+        if zu >= eps or zu <= -eps:
+            hit = u
+            break
+        lo = u
+    if hit < 0.0:
+        return xn, vn, 1.0, 0.0, 0
+    hi = hit
+    zh = 0.0
+    for it in range(_BISECT_ITERATIONS + 1):
+        mid = hi if it == 0 else 0.5 * (lo + hi)
+        xq, _ = _motor(cs, 0, s + mid * (1.0 - s))
+        xlq, _ = _gap_state(xl, vl, bj, mid * h, cj, ivs, Ts)
+        zq = xq - xlq
+        if zq >= eps or zq <= -eps:
+            hi = mid
+            zh = zq
+        elif it == 0:
+            # the interpolant overshot the boundary but z does not: a near-graze that
+            # the exact z misses; continue in the gap from there
+            break
+        else:
+            lo = mid
+    if zh == 0.0:
+        xl, vl = _gap_state(xl, vl, bj, hit * h, cj, ivs, Ts)
+        return xl, vl, s + hit * (1.0 - s), 0.0, 0
+    xl, vl = _gap_state(xl, vl, bj, hi * h, cj, ivs, Ts)
+    return xl, vl, s + hi * (1.0 - s), 1.0 if zh > 0.0 else -1.0, 1
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _interval(cs: NDArray[np.float64], Ts: float, xl: float, vl: float, side: float, eps: float, kj: float, dj: float,
+              bj: float, cj: float, ivs: float, cm: NDArray[np.float64], friction: bool
+              ) -> tuple[float, float, float, float, float, int]:
+    """One sample interval (the motor ``cs``, (1, 4)) from the load state (xl, vl) in mode ``side`` (0: the
+    gap), step by step to each contact or separation event. Returns (x_l, v_l, side at its end,
+    ∫₀¹ y ds, ∫₀¹ s·y ds [rad], events)."""
+    i0_sum = 0.0
+    i1_sum = 0.0
+    events = 0
+    s = 0.0
+    guard = 0
+    while s < 1.0:
+        guard += 1
+        if guard > _MAX_PARTS:  # pathological chattering: finish the step in the current mode
+            break
+        if side != 0.0:
+            xn, vn, i0, i1, send, p1, dp1e = _contact_step(cs, s, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs, cm,
+                                                           friction)
+            separated = False
+            if eps > 0.0:
+                separated, send, xn, vn, i0, i1 = _separation(cs, s, send, Ts, xl, vl, side, eps, kj, dj, bj, cj,
+                                                              ivs, xn, vn, i0, i1, p1, dp1e)
+            i0_sum += i0
+            i1_sum += i1
+            xl = xn
+            vl = vn
+            s = send
+            if separated:
+                side = 0.0
+                events += 1
+        else:
+            xl, vl, s, side, contact = _gap_step(cs, s, Ts, xl, vl, bj, cj, ivs, eps)
+            events += contact
+    return xl, vl, side, i0_sum, i1_sum, events
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K: float, D: float,
                    eps: float, xl0: float, vl0: float, F_l: float, ivs: float, cm: NDArray[np.float64],
@@ -318,15 +493,8 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
     cj = F_l / J_l
     xl = xl0
     vl = vl0
-    xm, _ = _motor(c, 0, 0.0)
-    z = xm - xl
-    side = 0.0
-    if eps <= 0.0:
-        side = 1.0
-    elif z > eps:
-        side = 1.0
-    elif z < -eps:
-        side = -1.0
+    z = _motor(c, 0, 0.0)[0] - xl
+    side = 1.0 if eps <= 0.0 or z > eps else (-1.0 if z < -eps else 0.0)
     events = 0
     E = np.zeros(m - 1)
     EL = np.zeros(m + 1)
@@ -344,150 +512,8 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
         cs[0, 1] = c[k, 1]
         cs[0, 2] = c[k, 2] - ramp
         cs[0, 3] = c[k, 3] - offset
-        s = 0.0
-        guard = 0
-        while s < 1.0:
-            guard += 1
-            if guard > _MAX_PARTS:  # pathological chattering: finish the step in the current mode
-                break
-            if side != 0.0:
-                # --- contact: one step (exact or RK4, plus quadrature of y and s·y) to the interval's end,
-                # cut into ceil(rate·h/_STIFF_STEP) parts where the load speed is, or may get, within
-                # _STIFF_ZONE·v_s of zero (the stiff zone of the Coulomb smooth sign, rate cj·ivs)
-                send = 1.0
-                if cj != 0.0:
-                    rate_h = cj * ivs * (1.0 - s) * Ts / _STIFF_STEP
-                    if rate_h > 1.0:
-                        xa, da = _motor(cs, 0, s)
-                        _, a0 = _accel(xa, da / Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
-                        if abs(vl) * ivs < _STIFF_ZONE + abs(a0) * (1.0 - s) * Ts * ivs:
-                            send = s + (1.0 - s) / min(math.ceil(rate_h), _MAX_STIFF_PARTS)
-                h = (send - s) * Ts
-                exact = False
-                if send == 1.0 and s == 0.0:
-                    if not friction:  # the common case: a whole interval, linear
-                        xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, cs, 0, Ts, xl, vl, side, eps, 0.0)
-                        exact = True
-                    elif abs(vl) * ivs > _SATURATED:
-                        # the load moves fast enough that the smooth sign is ±1 in float64 over the
-                        # whole interval (checked at its end): a constant force, the step is exact
-                        sg = 1.0 if vl > 0.0 else -1.0
-                        xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, cs, 0, Ts, xl, vl, side, eps,
-                                                                  sg * cj / kj)
-                        exact = vn * sg * ivs > _SATURATED
-                if not exact:
-                    if send == 1.0:  # the interval's end as a constant: a few % faster
-                        xn, vn, i0, i1, p1, dp1e = _rk4_contact(cs, 0, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj,
-                                                                cj, ivs)
-                    else:
-                        xn, vn, i0, i1, p1, dp1e = _rk4_contact(cs, 0, s, send, Ts, xl, vl, side, eps, kj, dj, bj,
-                                                                cj, ivs)
-                if eps > 0.0:
-                    xa, da = _motor(cs, 0, s)
-                    p0 = side * (xa - xl - side * eps)
-                    dp0 = side * (da / Ts - vl) * h
-                    dp1 = dp1e * (send - s)
-                    hit = -1.0
-                    lo = 0.0
-                    # Hermite cubic ≥ min(p0, p1) − (4/27)(|dp0| + |dp1|): skip the scan when safe
-                    jstart = 1
-                    if min(p0, p1) > _HERMITE_BOUND * (abs(dp0) + abs(dp1)):
-                        jstart = _GRAZE_POINTS + 2
-                    for j in range(jstart, _GRAZE_POINTS + 2):
-                        u = j / (_GRAZE_POINTS + 1.0)
-                        if _hermite(p0, dp0, p1, dp1, u) < 0.0:
-                            hit = u
-                            break
-                        lo = u
-                    if hit > 0.0:
-                        hi = hit
-                        for _ in range(_BISECT_ITERATIONS):
-                            mid = 0.5 * (lo + hi)
-                            if _hermite(p0, dp0, p1, dp1, mid) < 0.0:
-                                hi = mid
-                            else:
-                                lo = mid
-                        se = s + hi * (send - s)
-                        # Newton on the actual RK4 step length
-                        xn, vn, i0, i1, pe, dpe = _rk4_contact(cs, 0, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
-                        for _ in range(4):
-                            if abs(pe) <= 1e-15 or dpe == 0.0:
-                                break
-                            sn = se - pe / dpe
-                            if not (s < sn <= send):
-                                break
-                            xq, vq, iq0, iq1, pq, dpq = _rk4_contact(cs, 0, s, sn, Ts, xl, vl, side, eps,
-                                                                     kj, dj, bj, cj, ivs)
-                            if abs(pq) >= abs(pe):
-                                break
-                            se, xn, vn, i0, i1, pe, dpe = sn, xq, vq, iq0, iq1, pq, dpq
-                        I0[k] += i0
-                        I1[k] += i1
-                        xl = xn
-                        vl = vn
-                        s = se
-                        side = 0.0
-                        events += 1
-                        continue
-                I0[k] += i0
-                I1[k] += i1
-                xl = xn
-                vl = vn
-                s = send
-            else:
-                # --- gap: free viscous decay of the load, exact; motor: the spline, exact
-                h = (1.0 - s) * Ts
-                xa, da = _motor(cs, 0, s)
-                xc, dc = _motor(cs, 0, 1.0)
-                xn, vn = _gap_state(xl, vl, bj, h, cj, ivs, Ts)
-                z0 = xa - xl
-                z1 = xc - xn
-                dz0 = (da / Ts - vl) * h
-                dz1 = (dc / Ts - vn) * h
-                hit = -1.0
-                lo = 0.0
-                jstart = 1
-                if max(abs(z0), abs(z1)) + _HERMITE_BOUND * (abs(dz0) + abs(dz1)) < eps:
-                    jstart = _GRAZE_POINTS + 2
-                for j in range(jstart, _GRAZE_POINTS + 2):
-                    u = j / (_GRAZE_POINTS + 1.0)
-                    zu = _hermite(z0, dz0, z1, dz1, u)
-                    if zu >= eps or zu <= -eps:
-                        hit = u
-                        break
-                    lo = u
-                if hit < 0.0:
-                    xl = xn
-                    vl = vn
-                    s = 1.0
-                    continue
-                # bisect on the exact gap variable z(u)
-                hi = hit
-                zh = 0.0
-                for it in range(_BISECT_ITERATIONS + 1):
-                    mid = hi if it == 0 else 0.5 * (lo + hi)
-                    xq, _ = _motor(cs, 0, s + mid * (1.0 - s))
-                    xlq, _ = _gap_state(xl, vl, bj, mid * h, cj, ivs, Ts)
-                    zq = xq - xlq
-                    if zq >= eps or zq <= -eps:
-                        hi = mid
-                        zh = zq
-                    elif it == 0:
-                        # the interpolant overshot the boundary but z does not: a near-graze that
-                        # the exact z misses; continue in the gap from there
-                        break
-                    else:
-                        lo = mid
-                if zh == 0.0:
-                    se = s + hit * (1.0 - s)
-                    xl, vl = _gap_state(xl, vl, bj, hit * h, cj, ivs, Ts)
-                    s = se
-                    continue
-                se = s + hi * (1.0 - s)
-                xl, vl = _gap_state(xl, vl, bj, hi * h, cj, ivs, Ts)
-                side = 1.0 if zh > 0.0 else -1.0
-                s = se
-                events += 1
+        xl, vl, side, I0[k], I1[k], ev = _interval(cs, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs, cm, friction)
+        events += ev
         offset += ramp
         ramp = 0.0
         if k >= 1:
