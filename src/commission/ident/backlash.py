@@ -242,15 +242,7 @@ def _simulate_core(J_m, J_l, B_m, B_l, K, D, eps, h, tau, shift, x0, locate, ful
     L = _J_LEVELS
     linear = eps <= 0.0
     nmodes = 4
-    P = np.empty((nmodes, L + 1, 4, 6))
-    omega = np.zeros(nmodes)
-    for m in range(nmodes):
-        M = _mode_matrix(J_m, J_l, B_m, B_l, K, D, eps, m)
-        P[m] = _expm_levels(M, h, L)[:, :4, :]
-        omega[m] = _spectral_radius_bound(M)
-    dt = np.empty(L + 1)
-    for j in range(L + 1):
-        dt[j] = h / 2.0**j
+    P, omega, dt = _mode_maps(J_m, J_l, B_m, B_l, K, D, eps, h, L, nmodes)
     nf = n if full else 0
     xm = np.empty(nf)
     zz = np.empty(nf)
@@ -298,23 +290,8 @@ def _simulate_core(J_m, J_l, B_m, B_l, K, D, eps, h, tau, shift, x0, locate, ful
             n1 = Pm[1, 0] * s0 + Pm[1, 1] * s1 + Pm[1, 2] * s2 + Pm[1, 3] * s3 + Pm[1, 4] * u + Pm[1, 5]
             n2 = Pm[2, 0] * s0 + Pm[2, 1] * s1 + Pm[2, 2] * s2 + Pm[2, 3] * s3 + Pm[2, 4] * u + Pm[2, 5]
             n3 = Pm[3, 0] * s0 + Pm[3, 1] * s1 + Pm[3, 2] * s2 + Pm[3, 3] * s3 + Pm[3, 4] * u + Pm[3, 5]
-            if linear or not locate or sample_events >= _MAX_EVENTS_PER_SAMPLE:
-                ok = True
-            else:
-                # cheap inline bound first (see _leaves), the full test only near ±ε
-                w0 = s1 - s3
-                w1 = n1 - n3
-                T = dt[j]
-                wt = omega[mode] * T
-                spread = T * (abs(w0) + abs(w1)) * (0.15 + _MARGIN * wt * wt) + _MARGIN * wt * wt * T * abs(w1 - w0)
-                if mode == _MODE_PLUS:
-                    ok = min(s2, n2) - spread >= eps - _TOL_Z
-                elif mode == _MODE_MINUS:
-                    ok = max(s2, n2) + spread <= -eps + _TOL_Z
-                else:
-                    ok = max(s2, n2) + spread <= eps + _TOL_Z and min(s2, n2) - spread >= -eps - _TOL_Z
-                if not ok:
-                    ok = not _leaves(mode, eps, s2, n2, w0, w1, T, omega[mode])
+            ok = (linear or not locate or sample_events >= _MAX_EVENTS_PER_SAMPLE
+                  or _stays(mode, eps, s2, n2, s1 - s3, n1 - n3, dt[j], omega[mode]))
             if ok or j == L:
                 s0, s1, s2, s3 = n0, n1, n2, n3
                 t += NT >> j
@@ -334,16 +311,54 @@ def _simulate_core(J_m, J_l, B_m, B_l, K, D, eps, h, tau, shift, x0, locate, ful
                         j -= 1
             else:
                 j += 1  # halve the step and try again
-    s_end = np.array([s0, s1, s2, s3])
+    xl, vl = _load_ticks(xm, zz, x0[3], inv_h)
+    return xm, zz, xl, vm, vl, vm_tick, vl_tick, ts, np.array([s0, s1, s2, s3]), events
+
+
+@njit(cache=True, inline="always")
+def _stays(mode, eps, s2, n2, w0, w1, T, omega):
+    """Whether the step of length T from twist s2 (twist rate w0) to n2 (w1) stays in ``mode``: a cheap
+    bound first (see :func:`_leaves`), the full test only near ±ε."""
+    wt = omega * T
+    spread = T * (abs(w0) + abs(w1)) * (0.15 + _MARGIN * wt * wt) + _MARGIN * wt * wt * T * abs(w1 - w0)
+    if mode == _MODE_PLUS:
+        ok = min(s2, n2) - spread >= eps - _TOL_Z
+    elif mode == _MODE_MINUS:
+        ok = max(s2, n2) + spread <= -eps + _TOL_Z
+    else:
+        ok = max(s2, n2) + spread <= eps + _TOL_Z and min(s2, n2) - spread >= -eps - _TOL_Z
+    return ok or not _leaves(mode, eps, s2, n2, w0, w1, T, omega)
+
+
+@njit(cache=True)
+def _mode_maps(J_m, J_l, B_m, B_l, K, D, eps, h, L, nmodes):
+    """Per mode the exact maps of the dyadic steps h/2^j, j = 0 … L ((nmodes, L + 1, 4, 6): state and input
+    and constant columns), a bound on its spectral radius, and the step lengths [s]."""
+    P = np.empty((nmodes, L + 1, 4, 6))
+    omega = np.zeros(nmodes)
+    for m in range(nmodes):
+        M = _mode_matrix(J_m, J_l, B_m, B_l, K, D, eps, m)
+        P[m] = _expm_levels(M, h, L)[:, :4, :]
+        omega[m] = _spectral_radius_bound(M)
+    dt = np.empty(L + 1)
+    for j in range(L + 1):
+        dt[j] = h / 2.0**j
+    return P, omega, dt
+
+
+@njit(cache=True)
+def _load_ticks(xm, zz, vl0, inv_h):
+    """The load position x_m − z at the ticks and its backward-difference velocity (v_l0 at tick 0)."""
+    nf = xm.shape[0]
     xl = np.empty(nf)
     vl = np.empty(nf)
-    if full:
-        for k in range(n):
+    if nf:
+        for k in range(nf):
             xl[k] = xm[k] - zz[k]
-        vl[0] = x0[3]
-        for k in range(1, n):
+        vl[0] = vl0
+        for k in range(1, nf):
             vl[k] = (xl[k] - xl[k - 1]) * inv_h
-    return xm, zz, xl, vm, vl, vm_tick, vl_tick, ts, s_end, events
+    return xl, vl
 
 
 # --- public API ------------------------------------------------------------- #
