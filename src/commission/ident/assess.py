@@ -125,7 +125,7 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float) -> FitQu
     inn = fit.innovations
     assert inn is not None
     nu = inn.normalized[:, 0]
-    level = float(np.sqrt(np.mean(inn.normalized ** 2)))
+    level = inn.rms
     flat, stationary = whiteness(nu, sample_rate_hz)
     white = flat >= WHITE_FLATNESS and stationary <= WHITE_STATIONARY
     disturbance = fit.process_noise_nm / max(torque_rms_nm, 1e-300)

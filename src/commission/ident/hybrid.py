@@ -179,6 +179,8 @@ class _Run:
     epsilon_searched_rad: float = 0.0
     """Upper bound of ε over every Kalman fit [rad]: a result the record does not determine says ε lies
     somewhere up to it (or up to the largest gap the scan considers)."""
+    kalman: Any = None
+    """The Kalman predictor's problem (commission.ident.kalman.KalmanProblem), built by the first Kalman fit."""
 
     @property
     def fs(self) -> float:
@@ -231,7 +233,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
     from .assess import DISTURBANCE_MISFIT, INNOVATION_UNDETERMINED
 
     # (a record the model cannot follow at all, its predictions 100× off, has no gap's basin to find)
-    level = float(np.sqrt(np.mean(pem.innovations.normalized ** 2))) if pem.innovations is not None else math.inf
+    level = pem.innovations.rms if pem.innovations is not None else math.inf
     if (start.epsilon_rad > 0.0 and pem.process_noise_nm >= DISTURBANCE_MISFIT * _torque_rms(run)
             and level < INNOVATION_UNDETERMINED):
         st.start("hedged", 0.8)
@@ -520,10 +522,12 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False) -> PemFit:
     from .residual import motor_position_samples
 
     rec = run.rec
-    kp = kalman_problem(rec.torque_ref, motor_position_samples(rec.motor_position, rec.motor_velocity, run.fs), run.fs,
-                        load_position=rec.load_position if run.use_load else None,
-                        velocity_scale_rad_s=run.opt.coulomb_velocity_scale_rad_s,
-                        lost=run.lost if run.lost.any() else None)
+    if run.kalman is None:
+        run.kalman = kalman_problem(
+            rec.torque_ref, motor_position_samples(rec.motor_position, rec.motor_velocity, run.fs), run.fs,
+            load_position=rec.load_position if run.use_load else None,
+            velocity_scale_rad_s=run.opt.coulomb_velocity_scale_rad_s, lost=run.lost if run.lost.any() else None)
+    kp = run.kalman
     eps_max = max(run.epsilon_max_rad, 2.0 * start.epsilon_rad)
     if not math.isfinite(eps_max):
         eps_max = math.radians(2.0 * run.opt.epsilon_bounds_deg[1])

@@ -109,6 +109,11 @@ class Innovations:
         """Mean of ν² + ln S (Gaussian prediction errors, up to a constant) [-]."""
         return float(np.mean(self.normalized ** 2 + self.log_variance))
 
+    @property
+    def rms(self) -> float:
+        """RMS of ``normalized`` [-]: 1 at the true parameters and noise levels."""
+        return float(np.sqrt(np.mean(self.normalized ** 2)))
+
 
 # --- the model's matrices ------------------------------------------------------------------------
 def _continuous(p: TwoMassParameters, lag_s: float, contact: bool) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
