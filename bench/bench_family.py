@@ -10,7 +10,7 @@ wrong (not flagged, outside tolerance), no result at all (by reason), the covera
 95 % ε interval, the median and 95th-percentile time, breakdowns by class, and the worst
 members. A dated summary is appended to bench/results/family.md.
 
-    python bench/bench_family.py                    # default: the first 50 members, a few minutes
+    python bench/bench_family.py                    # default: the first 50 members, ~30 min (flagged ones are slow)
     python bench/bench_family.py --subset 1         # the whole family (200 members)
     python bench/bench_family.py --subset 1 --jobs 2 --out run.jsonl   # accuracy only, faster
     python bench/bench_family.py --compare bench/results/family-baseline.jsonl --out new.jsonl
