@@ -51,6 +51,27 @@ def test_at_the_true_parameters_the_prediction_errors_are_the_encoders_noise(fs:
     assert wrong_gap is not None and _rms(wrong_gap.normalized) > 2 * _rms(at_truth.normalized)
 
 
+def test_a_drives_computation_delay_is_predicted_in_whole_samples() -> None:
+    """A drive whose torque acts 2 samples after its reference (beyond the hold's own), behind a 1 kHz
+    current loop: with the delay the predictor's errors at the true plant are the encoder's noise; without
+    it, or with the loop's lag standing in for it, they are not."""
+    fs = 8000.0
+    tc = 1.0 / (2 * math.pi * 1000.0)
+    tau, r = _record(fs, 3.0, encoder_bits_motor=20, current_loop_bandwidth_hz=1000.0, delay_samples=2)
+    kw = dict(lag_s=tc, process_noise_nm=1e-4 * float(np.sqrt(np.mean(tau ** 2))))
+    delayed = kalman_problem(tau, r.motor_position, fs, delay_samples=2)
+    assert delayed.delay_samples == 2 and np.array_equal(delayed.torque_ref[2:], tau[:-2])
+    assert delayed.torque_ref[0] == delayed.torque_ref[1] == 0.0
+    right = innovations(delayed, REFERENCE_PLANT, math.radians(0.4), **kw)
+    assert right is not None and 0.8 < _rms(right.normalized) < 1.3
+    plain = kalman_problem(tau, r.motor_position, fs)
+    for lag in (tc, tc + 2 / fs):
+        wrong = innovations(plain, REFERENCE_PLANT, math.radians(0.4), **{**kw, "lag_s": lag})
+        assert wrong is not None and _rms(wrong.normalized) > 3 * _rms(right.normalized)
+    with pytest.raises(ValueError):
+        kalman_problem(tau, r.motor_position, fs, delay_samples=-1)
+
+
 def test_sigma_points_across_the_gap_turn_the_likelihoods_needle_into_a_basin() -> None:
     """At the true plant, the negative log-likelihood per prediction error against ε: the plain predictor's
     is a needle (a gap 1 % off misses the motor's impacts by many standard deviations); with a random walk

@@ -310,6 +310,12 @@ def test_simulated_drive_with_slow_current_loop_and_delay(tmp_path) -> None:
     with open_drive(sim=True, sim_plant=plant) as drive:
         out = Sequencer(config, drive, tmp_path, identify=lambda r: identify(r, config.identification),
                         true_plant=truth).run()
+    # the identification finds the drive's delay (a first-order loop alone left 11 % of the torque unexplained)
+    ident = out.identification
+    assert ident.fit is not None and not ident.fit.approximate, ident.fit.reasons
+    assert ident.current_loop is not None and ident.current_loop["delay_samples"] == 2
+    assert ident.current_loop["bandwidth_hz"] == pytest.approx(1000.0, rel=0.05)
+    assert ident.delay_s == pytest.approx(3 / 8000.0)
     tuning = out.tuning
     assert tuning is not None and tuning.controller["verification"]["ready"], tuning.controller["verification"]
     s = tuning.settings

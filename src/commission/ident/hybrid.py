@@ -62,6 +62,8 @@ _QUANTIZATION_TARGET = 2.5
 _RESTART_DISTURBANCE = 0.01
 #: Stiffness factors of the further starts when the first fit leaves model error (:func:`_stiffer_starts`).
 _STIFFER_STARTS = (1.7, 3.0)
+#: Largest whole-sample torque delay tried beyond the hold's own (:func:`_delay_stage`).
+_MAX_DELAY_SAMPLES = 4
 
 
 class _Stages:
@@ -179,8 +181,11 @@ class _Run:
     epsilon_searched_rad: float = 0.0
     """Upper bound of ε over every Kalman fit [rad]: a result the record does not determine says ε lies
     somewhere up to it (or up to the largest gap the scan considers)."""
+    delay_samples: int = 0
+    """Whole samples the torque acts after its reference beyond the hold's own (:func:`_delay_stage`)."""
     kalman: Any = None
-    """The Kalman predictor's problem (commission.ident.kalman.KalmanProblem), built by the first Kalman fit."""
+    """The Kalman predictor's problem (commission.ident.kalman.KalmanProblem) at ``delay_samples``, built by
+    the first Kalman fit."""
 
     @property
     def fs(self) -> float:
@@ -226,6 +231,10 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
     pem = _kalman_stage(run, pem)
     st.done("kalman", process_noise_nm=pem.process_noise_nm, load_share=pem.load_share, evaluations=pem.evaluations,
             converged=pem.converged, events=pem.innovations.events if pem.innovations is not None else 0)
+    if _delay_candidates(run, pem):
+        st.start("delay", 0.65)
+        pem, tried = _delay_stage(run, pem)
+        st.done("delay", delay_samples=run.delay_samples, tried=tried)
     if run.encoders is None and _model_error(run, pem):
         st.start("restarts", 0.7)
         run, cell, pem, restarts = _stiffer_starts(run, cell, pem)
@@ -493,6 +502,43 @@ def _stiffer_starts(run: _Run, cell: Any, pem: PemFit) -> tuple[_Run, Any, PemFi
     return chosen, c, p, tried
 
 
+def _delay_candidates(run: _Run, pem: PemFit) -> range:
+    """The whole-sample torque delays worth trying: where the estimate needs a disturbance and its current
+    loop's lag spans whole samples (a delay the first-order lag stands in for)."""
+    if not (pem.terms.current_loop and _needs_disturbance(run, pem)):
+        return range(0)
+    return range(1, min(_MAX_DELAY_SAMPLES, int(pem.lag_s * run.fs)) + 1)
+
+
+def _delay_stage(run: _Run, pem: PemFit) -> tuple[PemFit, list[dict[str, float]]]:
+    """The estimate again with the torque acting 1, 2, … samples after its reference (the current loop's
+    lag shortened by as much), while each makes the record more likely by more than a parameter's price
+    (the BIC's ½·ln n_eff); the most likely delay is kept in ``run.delay_samples``.
+
+    A drive's computation and transport delay is a pure delay, which a first-order current loop only
+    stands in for at low frequency: on the simulated drive with a 1 kHz loop and 2 samples of delay the
+    estimate without it needed a torque disturbance of 11 % of RMS τ_ref (J_m −10 %, ε −13 %); with it
+    1.9 %, the loop's time constant exact and J_m, K within 0.1 %."""
+    tried = [{"delay_samples": 0, "negative_log_likelihood": _likelihood_cost(pem)}]
+    best, best_d, spent = pem, 0, pem.evaluations
+    for d in _delay_candidates(run, pem):
+        run.delay_samples = d
+        other = _kalman_stage(run, replace(best, lag_s=max(pem.lag_s - d / run.fs, 0.0)))
+        spent += other.evaluations
+        tried.append({"delay_samples": d, "negative_log_likelihood": _likelihood_cost(other)})
+        samples = (run.kalman.motor_position.size - 1) * run.kalman.outputs
+        if not (_likelihood_cost(best) - _likelihood_cost(other)) * samples > 0.5 * math.log(other.n_effective):
+            break  # the delays are tried while each makes the record more likely
+        best, best_d = other, d
+    run.delay_samples = best_d
+    if best_d:
+        run.notes.append(f"the torque acts {best_d} sample{'s' if best_d > 1 else ''} after its reference beyond the "
+                         "hold's own (the drive's computation and encoder delays): the record is "
+                         f"{math.exp(0.5 * (tried[0]['negative_log_likelihood'] - _likelihood_cost(best))):.3g}× as "
+                         "likely per sample as with the current loop's lag alone")
+    return replace(best, evaluations=spent), tried
+
+
 def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_Run, PemFit]:
     """An estimate that needs a disturbance the assessment flags, tried again: the hedged Kalman fit
     (``kalman_fit(hedged=True)``) from the torque-residual fit's ``start`` on the ``first`` run finds the
@@ -522,12 +568,16 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False) -> PemFit:
     from .residual import motor_position_samples
 
     rec = run.rec
-    if run.kalman is None:
+    if run.kalman is None or run.kalman.delay_samples != run.delay_samples:
         run.kalman = kalman_problem(
             rec.torque_ref, motor_position_samples(rec.motor_position, rec.motor_velocity, run.fs), run.fs,
             load_position=rec.load_position if run.use_load else None,
-            velocity_scale_rad_s=run.opt.coulomb_velocity_scale_rad_s, lost=run.lost if run.lost.any() else None)
+            velocity_scale_rad_s=run.opt.coulomb_velocity_scale_rad_s, lost=run.lost if run.lost.any() else None,
+            delay_samples=run.delay_samples)
     kp = run.kalman
+    if run.delay_samples and start.process_noise_nm == 0.0:
+        # a torque-residual fit's current loop stands in for the delay too
+        start = replace(start, lag_s=max(start.lag_s - run.delay_samples / run.fs, 0.0))
     eps_max = max(run.epsilon_max_rad, 2.0 * start.epsilon_rad)
     if not math.isfinite(eps_max):
         eps_max = math.radians(2.0 * run.opt.epsilon_bounds_deg[1])
@@ -571,13 +621,13 @@ def _check_stage(run: _Run, cell: Any, pem: PemFit) -> tuple[FitQuality, list[di
     frd = run.start.frd if run.start is not None else estimate_frd(
         rec.torque_ref, rec.motor_velocity, fs, band_hz=run.band, resolution_hz=run.resolution, quality=False)
     iterations = []
-    for label, p, e, lag in (("start", run.base, cell.epsilon_rad, 0.0),
-                             ("result", pem.parameters, pem.epsilon_rad, pem.lag_s)):
+    for label, p, e, lag, d in (("start", run.base, cell.epsilon_rad, 0.0, 0),
+                                ("result", pem.parameters, pem.epsilon_rad, pem.lag_s, run.delay_samples)):
         if not 0.0 < _resonance_hz(p) < 0.25 * fs:  # an open-loop simulation could not resolve it
             run.notes.append(f"step 5 on the {label} skipped: its resonance is not below fs/4")
             continue
         try:
-            iterations.append({"frd_error": _step5(rec, frd, p, e, lag), "epsilon_deg": math.degrees(e)})
+            iterations.append({"frd_error": _step5(rec, frd, p, e, lag, d), "epsilon_deg": math.degrees(e)})
         except IdentificationError as err:  # an open-loop simulation of a poor start may diverge
             run.notes.append(f"step 5 on the {label} failed: {err}")
     return quality, iterations
@@ -601,10 +651,10 @@ def _identification(run: _Run, pem: PemFit, quality: FitQuality, iterations: lis
         epsilon_interval_rad=(_epsilon_interval(pem, float(run.cutoff["position_step_rad"])) if quality.determined
                               else (0.0, max(run.epsilon_searched_rad, math.radians(EPSILON_EXTEND_MAX_DEG), eps))),
         evaluations=scan_evaluations + pem.evaluations, modes=modes(params), num=num, den=den,
-        delay_s=1.0 / run.fs, iterations=iterations, stages=stages, source_samples=len(run.rec),
+        delay_s=(1 + run.delay_samples) / run.fs, iterations=iterations, stages=stages, source_samples=len(run.rec),
         sample_rate_hz=run.fs, backlash_detected=detected, notes=run.notes, fit=quality,
         parameter_stderr=pem.relative_stderr, parameter_interval=_intervals(pem, quality.determined), friction=_friction(pem, run.opt),
-        current_loop=_current_loop(pem), selection=pem.selection or None,
+        current_loop=_current_loop(pem, run.delay_samples), selection=pem.selection or None,
         measured_band_hz=measured_band_hz(run.start.frd) if run.start is not None else run.band)
 
 
@@ -661,19 +711,20 @@ def _friction(pem: PemFit, opt: IdentificationOptions) -> dict[str, Any] | None:
     return out
 
 
-def _current_loop(pem: PemFit) -> dict[str, Any] | None:
+def _current_loop(pem: PemFit, delay_samples: int = 0) -> dict[str, Any] | None:
     if not pem.terms.current_loop or pem.lag_s <= 0:
-        return None
+        return {"delay_samples": delay_samples} if delay_samples else None
     tc, half = pem.lag_s, 1.96e-6 * pem.stderr("T_c_us")
     lo_t, hi_t = max(tc - half, 0.0), tc + half
     return {"bandwidth_hz": 1.0 / (2.0 * math.pi * tc),
             "bandwidth_interval_hz": [1.0 / (2.0 * math.pi * hi_t), 1.0 / (2.0 * math.pi * lo_t) if lo_t > 0 else math.inf],
-            "time_constant_s": tc}
+            "time_constant_s": tc, "delay_samples": delay_samples}
 
 
-def _step5(rec: Recording, frd: Any, params: TwoMassParameters, eps: float, lag_s: float = 0.0) -> float:
+def _step5(rec: Recording, frd: Any, params: TwoMassParameters, eps: float, lag_s: float = 0.0,
+           delay_samples: int = 0) -> float:
     """Paper step 5: FRD of the open-loop dead-zone simulation vs the measured FRD (a kept current
-    loop's lag enters as its exact mean over each held sample)."""
+    loop's lag enters as its exact mean over each held sample, a torque delay in whole samples)."""
     from scipy.signal import lfilter
 
     from .backlash import simulate_deadzone
@@ -686,7 +737,7 @@ def _step5(rec: Recording, frd: Any, params: TwoMassParameters, eps: float, lag_
         a = math.exp(-ts / lag_s)
         state = lfilter([0.0, 1.0 - a], [1.0, -a], torque)  # τ at each tick, from rest
         torque = torque + (state - torque) * (lag_s / ts) * (1.0 - a)
-    sim = simulate_deadzone(params, eps, torque, rec.sample_rate_hz, delay_samples=1)
+    sim = simulate_deadzone(params, eps, torque, rec.sample_rate_hz, delay_samples=1 + delay_samples)
     lo, hi = float(frd.frequency_hz[0]), float(frd.frequency_hz[-1])
     g = estimate_frd(rec.torque_ref, sim.motor_velocity, rec.sample_rate_hz, band_hz=(lo, hi),
                      resolution_hz=frd.resolution_hz, quality=False)

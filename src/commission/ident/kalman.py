@@ -47,7 +47,8 @@ class KalmanProblem:
 
     sample_rate_hz: float
     torque_ref: NDArray[np.float64]
-    """Torque reference held over [k·Ts, (k+1)·Ts) [N·m], shape (N,)."""
+    """Torque acting over [k·Ts, (k+1)·Ts): the reference ``delay_samples`` before, 0 before the record
+    [N·m], shape (N,)."""
     motor_position: NDArray[np.float64]
     """Motor encoder at k·Ts [rad], shape (N,)."""
     load_position: NDArray[np.float64] | None
@@ -62,6 +63,9 @@ class KalmanProblem:
     torque_rms_nm: float
     """RMS of τ_ref [N·m]: the scale of the torque disturbance."""
     velocity_scale_rad_s: float
+    delay_samples: int = 0
+    """Whole samples between a torque reference and the current loop beyond the hold's own (a drive's
+    computation and transport delay)."""
 
     @property
     def outputs(self) -> int:
@@ -77,8 +81,9 @@ def position_step_rad(position: NDArray[np.float64]) -> float:
 
 def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.float64], sample_rate_hz: float, *,
                    load_position: NDArray[np.float64] | None = None, velocity_scale_rad_s: float = 2e-3,
-                   lost: NDArray[np.bool_] | None = None) -> KalmanProblem:
-    """The predictor's view of a record (see :class:`KalmanProblem`)."""
+                   lost: NDArray[np.bool_] | None = None, delay_samples: int = 0) -> KalmanProblem:
+    """The predictor's view of a record (see :class:`KalmanProblem`); ``torque_ref`` [N·m], shape (N,), the
+    reference as logged, acting ``delay_samples`` later."""
     fs = float(sample_rate_hz)
     y = np.ascontiguousarray(motor_position, dtype=np.float64)
     speed = np.diff(y) * fs
@@ -87,9 +92,13 @@ def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.f
     noise = np.array([max(s, 1e-9) / math.sqrt(12.0) for s in steps])
     measured = np.ones(y.size, dtype=np.bool_) if lost is None else ~np.asarray(lost, dtype=np.bool_)
     tau = np.ascontiguousarray(torque_ref, dtype=np.float64)
-    return KalmanProblem(fs, tau, y, None if load_position is None else np.ascontiguousarray(load_position, dtype=np.float64),
+    d = int(delay_samples)
+    if not 0 <= d < tau.size:
+        raise ValueError(f"delay of {delay_samples} samples on a record of {tau.size}")
+    acting = np.concatenate((np.zeros(d), tau[:tau.size - d])) if d else tau
+    return KalmanProblem(fs, acting, y, None if load_position is None else np.ascontiguousarray(load_position, dtype=np.float64),
                          np.concatenate((np.tanh(speed / velocity_scale_rad_s), [0.0])), noise,
-                         np.ascontiguousarray(measured), float(np.sqrt(np.mean(tau * tau))), velocity_scale_rad_s)
+                         np.ascontiguousarray(measured), float(np.sqrt(np.mean(tau * tau))), velocity_scale_rad_s, d)
 
 
 @dataclass(frozen=True, eq=False)
