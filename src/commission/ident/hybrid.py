@@ -523,7 +523,8 @@ def _delay_stage(run: _Run, pem: PemFit) -> tuple[PemFit, list[dict[str, float]]
     best, best_d, spent = pem, 0, pem.evaluations
     for d in _delay_candidates(run, pem):
         run.delay_samples = d
-        other = _kalman_stage(run, replace(best, lag_s=max(pem.lag_s - d / run.fs, 0.0)))
+        # (the terms as the first estimate chose them, every configured one tried there)
+        other = _kalman_stage(run, replace(best, lag_s=max(pem.lag_s - d / run.fs, 0.0)), retry=False)
         spent += other.evaluations
         tried.append({"delay_samples": d, "negative_log_likelihood": _likelihood_cost(other)})
         samples = (run.kalman.motor_position.size - 1) * run.kalman.outputs
@@ -560,9 +561,10 @@ def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_
     return first, replace(other, evaluations=spent)
 
 
-def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False) -> PemFit:
+def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool = True) -> PemFit:
     """The estimate: prediction errors of the Kalman predictor of the whole state, from the torque-residual fit
-    (``hedged``: :func:`commission.ident.estimator.kalman_fit`'s)."""
+    (``hedged``: :func:`commission.ident.estimator.kalman_fit`'s), again with every configured term when it
+    needs a disturbance (``retry``)."""
     from .estimator import kalman_fit
     from .kalman import kalman_problem
     from .residual import motor_position_samples
@@ -595,7 +597,7 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False) -> PemFit:
     # interval that missed the truth (22:171); fitted from the start instead, it led 22:188 astray
     unfitted = (run.encoders is not None and run.encoders.coulomb_load_nm > 0.0 and candidates.coulomb_load
                 and not pem.terms.coulomb_load)
-    if candidates.names() == pem.terms.names() or not (_needs_disturbance(run, pem) or unfitted):
+    if not retry or candidates.names() == pem.terms.names() or not (_needs_disturbance(run, pem) or unfitted):
         return pem
     again = replace(pem, terms=candidates)
     if unfitted:
