@@ -523,8 +523,11 @@ def _delay_stage(run: _Run, pem: PemFit) -> tuple[PemFit, list[dict[str, float]]
     best, best_d, spent = pem, 0, pem.evaluations
     for d in _delay_candidates(run, pem):
         run.delay_samples = d
-        # (the terms as the first estimate chose them, every configured one tried there)
-        other = _kalman_stage(run, replace(best, lag_s=max(pem.lag_s - d / run.fs, 0.0)), retry=False)
+        try:  # (the terms as the first estimate chose them, every configured one tried there)
+            other = _kalman_stage(run, replace(best, lag_s=max(pem.lag_s - d / run.fs, 0.0)), retry=False)
+        except (IdentificationError, ValueError, np.linalg.LinAlgError) as err:
+            tried.append({"delay_samples": d, "negative_log_likelihood": math.inf, "failed": str(err)})
+            break
         spent += other.evaluations
         tried.append({"delay_samples": d, "negative_log_likelihood": _likelihood_cost(other)})
         samples = (run.kalman.motor_position.size - 1) * run.kalman.outputs
