@@ -451,6 +451,13 @@ def _torque_rms(run: _Run) -> float:
     return float(np.sqrt(np.mean(run.rec.torque_ref ** 2)))
 
 
+def _pays_for(kp: Any, pem: PemFit, other: PemFit, added: int) -> bool:
+    """Whether ``other`` makes the record of Kalman problem ``kp`` more likely than ``pem`` by more than the
+    BIC's price of its ``added`` parameters (½·ln n_eff each)."""
+    gain = (_likelihood_cost(pem) - _likelihood_cost(other)) * (len(kp.motor_position) - 1) * kp.outputs
+    return gain > 0.5 * added * math.log(other.n_effective)
+
+
 def _likelihood_cost(pem: PemFit) -> float:
     """The estimate's negative log-likelihood per prediction error: comparable across starts and noise models."""
     return pem.innovations.negative_log_likelihood() if pem.innovations is not None else math.inf
@@ -530,8 +537,7 @@ def _delay_stage(run: _Run, pem: PemFit) -> tuple[PemFit, list[dict[str, float]]
             break
         spent += other.evaluations
         tried.append({"delay_samples": d, "negative_log_likelihood": _likelihood_cost(other)})
-        samples = (run.kalman.motor_position.size - 1) * run.kalman.outputs
-        if not (_likelihood_cost(best) - _likelihood_cost(other)) * samples > 0.5 * math.log(other.n_effective):
+        if not _pays_for(run.kalman, best, other, 1):
             break  # the delays are tried while each makes the record more likely
         best, best_d = other, d
     run.delay_samples = best_d
@@ -607,8 +613,7 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool
         again = replace(again, coulomb_load_nm=run.encoders.coulomb_load_nm)  # type: ignore[union-attr]
     other = kalman_fit(kp, again, **kw)
     added = len(candidates.names()) - len(pem.terms.names())
-    gain = (_likelihood_cost(pem) - _likelihood_cost(other)) * (len(kp.motor_position) - 1) * kp.outputs
-    best = other if gain > 0.5 * added * math.log(other.n_effective) else pem
+    best = other if _pays_for(kp, pem, other, added) else pem
     return replace(best, evaluations=pem.evaluations + other.evaluations)
 
 
