@@ -60,6 +60,9 @@ _QUANTIZATION_TARGET = 2.5
 #: Torque disturbance (relative to RMS τ_ref) of the estimate's noise model above which the stiffer starts
 #: are tried too: the most likely estimate is kept, so a noisy record only pays their time.
 _RESTART_DISTURBANCE = 0.01
+#: ... and above which the hedged fit is tried: half the level the assessment flags, as an estimate the
+#: sharpened fits left just under that level can still sit in a wrong basin (22:067: 3.5 %, K −2 %).
+_HEDGE_ABOVE = 0.02
 #: Stiffness factors of the further starts when the first fit leaves model error (:func:`_stiffer_starts`).
 _STIFFER_STARTS = (1.7, 3.0)
 #: Largest whole-sample torque delay tried beyond the hold's own (:func:`_delay_stage`).
@@ -239,11 +242,11 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
         st.start("restarts", 0.7)
         run, cell, pem, restarts = _stiffer_starts(run, cell, pem)
         st.done("restarts", starts=restarts)
-    from .assess import DISTURBANCE_MISFIT, INNOVATION_UNDETERMINED
+    from .assess import INNOVATION_UNDETERMINED
 
     # (a record the model cannot follow at all, its predictions 100× off, has no gap's basin to find)
     level = pem.innovations.rms if pem.innovations is not None else math.inf
-    if (start.epsilon_rad > 0.0 and pem.process_noise_nm >= DISTURBANCE_MISFIT * _torque_rms(run)
+    if (start.epsilon_rad > 0.0 and pem.process_noise_nm > _HEDGE_ABOVE * _torque_rms(run)
             and level < INNOVATION_UNDETERMINED):
         st.start("hedged", 0.8)
         run, pem = _hedged_stage(first, start, run, pem)
@@ -550,7 +553,7 @@ def _delay_stage(run: _Run, pem: PemFit) -> tuple[PemFit, list[dict[str, float]]
 
 
 def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_Run, PemFit]:
-    """An estimate that needs a disturbance the assessment flags, tried again: the hedged Kalman fit
+    """An estimate that needs more than ``_HEDGE_ABOVE``, tried again: the hedged Kalman fit
     (``kalman_fit(hedged=True)``) from the torque-residual fit's ``start`` on the ``first`` run finds the
     gap's basin, the plain fit from there the estimate (the hedged predictor's own optimum can sit a few %
     off ε behind narrow intervals: 22:095); the more likely of the two plain estimates is kept. On
