@@ -113,6 +113,10 @@ class PemFit:
     """Kalman fit: the predictor's prediction errors at the optimum."""
     epsilon_profile_deg: tuple[float, float] | None = None
     """Kalman fit: ε's 95 % likelihood-ratio interval on its closing profile [deg] (None: ε at 0)."""
+    moved: bool = False
+    """Kalman fit: this estimate, or one it was started from, was moved by a term dropped or by damping and
+    friction divided anew between motor and load (where the noise model needed a large disturbance): such
+    a move can end in a neighbouring basin, so the assessment trusts it only at a drive's noise level."""
 
     def stderr(self, name: str) -> float:
         """Standard error of a coordinate (NaN when not in the fit)."""
@@ -638,13 +642,15 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
         obj, z, res = run.pruned(obj, z, res)
         obj, z, res = run.resplit(obj, z, res)
         # what stopped it may be a damping crawling toward 0, or the budget of a fit from a new start
-        if not res.status > 0 and (_hold_dampings(_held_covariance(res, run.free), run.free) or z is not sharp):
+        moved = z is not sharp
+        if not res.status > 0 and (_hold_dampings(_held_covariance(res, run.free), run.free) or moved):
             z, res = run.ls(obj, z, max_nfev)
         interval = None
         if z[6] > 0:
             obj, z, res, interval = run.polished(obj, z, res)
         run.calls += obj.calls
-    return _kalman_result(obj, z, res, run.free, run.calls, start.selection, keep_all, interval)
+    return replace(_kalman_result(obj, z, res, run.free, run.calls, start.selection, keep_all, interval),
+                   moved=moved or start.moved)
 
 
 class _KalmanFit:
