@@ -8,8 +8,7 @@ model and its noise model describe the record. A result is *approximate* when
   nothing is determined, every interval unbounded); or
 * the noise model needs a torque disturbance of ``DISTURBANCE_MISFIT`` of RMS τ_ref or more to follow
   the record: it then stands in for dynamics the model lacks, and the errors look like noise (the
-  intervals are then unbounded: the curvature describes no bias), or more than ``MOVED_MISFIT`` for an
-  estimate reached by dropping a term or dividing damping and friction anew (``PemFit.moved``); or
+  intervals are then unbounded: the curvature describes no bias); or
 * the least squares stopped at its evaluation limit, not at a stationary point; or
 * a 95 % interval is wider than commissioning needs: ε to ``EPSILON_TOLERANCE_DEG`` or
   ``RELATIVE_TOLERANCE`` of itself, J_m, J_l and K to ``RELATIVE_TOLERANCE``, the resonance and
@@ -119,10 +118,6 @@ INNOVATION_UNDETERMINED = 100.0
 #: 4.5–5.4 % (bench/results/family.md). Whiteness is no test here: correct fits of friction-rich
 #: records leave non-white errors, wrong ones white.
 DISTURBANCE_MISFIT = 0.04
-#: ... and above which an estimate a term's removal or a new motor/load division of damping and friction
-#: moved to (``PemFit.moved``) is not trusted: such moves ended in neighbouring basins at 1.5 % and 3.3 %
-#: (22:137: K −2 %; 22:143: ε +0.16°), the ones that reached a drive's noise level were right.
-MOVED_MISFIT = 0.01
 
 
 def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float) -> FitQuality:
@@ -135,8 +130,6 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float) -> FitQu
     white = flat >= WHITE_FLATNESS and stationary <= WHITE_STATIONARY
     disturbance = fit.process_noise_nm / max(torque_rms_nm, 1e-300)
     absorbed = disturbance >= DISTURBANCE_MISFIT
-    moved = fit.moved and disturbance > MOVED_MISFIT and not absorbed
-    absorbed = absorbed or moved
     misfit = level > INNOVATION_MISFIT or absorbed
     # a noise model that stands in for missing dynamics leaves curvature that describes no error of the
     # estimate's (a bias): nothing is claimed then
@@ -148,11 +141,6 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float) -> FitQu
     if level >= INNOVATION_UNDETERMINED:
         reasons.append(f"the model's one-step predictions miss by {level:.0f}× what the noise explains: the record "
                        "does not determine the parameters or ε under this model; their intervals are unbounded")
-    elif moved:
-        reasons.append(f"the estimate was reached by dropping a term or dividing damping and friction anew between "
-                       f"motor and load, and its noise model still needs a torque disturbance of {100 * disturbance:.2g} % "
-                       f"of RMS τ_ref, more than the {100 * MOVED_MISFIT:.0f} % that shows such a move found the plant: "
-                       "it may sit in a neighbouring basin, and its intervals are unbounded")
     elif absorbed:
         reasons.append(f"the model follows the record only with a torque disturbance of {100 * disturbance:.2g} % of "
                        "RMS τ_ref per sample, far more than a drive's noise: the rest is torque the model leaves "

@@ -27,7 +27,6 @@ with the Jacobian, which s²·(JᵀJ)⁻¹ ignores.
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -113,10 +112,6 @@ class PemFit:
     """Kalman fit: the predictor's prediction errors at the optimum."""
     epsilon_profile_deg: tuple[float, float] | None = None
     """Kalman fit: ε's 95 % likelihood-ratio interval on its closing profile [deg] (None: ε at 0)."""
-    moved: bool = False
-    """Kalman fit: this estimate, or one it was started from, was moved by a term dropped or by damping and
-    friction divided anew between motor and load (where the noise model needed a large disturbance): such
-    a move can end in a neighbouring basin, so the assessment trusts it only at a drive's noise level."""
 
     def stderr(self, name: str) -> float:
         """Standard error of a coordinate (NaN when not in the fit)."""
@@ -372,10 +367,6 @@ _ROBUST_CONTINUATION = True
 #: family's wrong basins needed (both measured in bench/results/family.md).
 _SHARPEN_ABOVE = 2e-2
 _SHARPEN_ROUNDS = 2
-#: The division of damping (and of Coulomb friction) between motor and load tried around an estimate that
-#: needs a large disturbance: ± this share of the total, on this many points each.
-_SPLIT_SPAN = 0.3
-_SPLIT_POINTS = 13
 #: ... and the levels the noise model is chosen among by likelihood at the first fit's optimum.
 _PROCESS_NOISE_GRID = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1)
 #: The Kalman fit's log-parameters are bounded to ×/÷ this around its start: its predictor stays finite
@@ -638,19 +629,13 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
         run = _KalmanFit(problem, start, epsilon_max_rad, pool, max_nfev, hedged)
         obj, z, res = run.continuation(keep_all)
         obj, z, res = run.sharpened(obj, z, res)
-        sharp = z
-        obj, z, res = run.pruned(obj, z, res)
-        obj, z, res = run.resplit(obj, z, res)
-        # what stopped it may be a damping crawling toward 0, or the budget of a fit from a new start
-        moved = z is not sharp
-        if not res.status > 0 and (_hold_dampings(_held_covariance(res, run.free), run.free) or moved):
-            z, res = run.ls(obj, z, max_nfev)
+        if not res.status > 0 and _hold_dampings(_held_covariance(res, run.free), run.free):
+            z, res = run.ls(obj, z, max_nfev)  # what stopped it may be a damping crawling toward 0
         interval = None
         if z[6] > 0:
             obj, z, res, interval = run.polished(obj, z, res)
         run.calls += obj.calls
-    return replace(_kalman_result(obj, z, res, run.free, run.calls, start.selection, keep_all, interval),
-                   moved=moved or start.moved)
+    return _kalman_result(obj, z, res, run.free, run.calls, start.selection, keep_all, interval)
 
 
 class _KalmanFit:
@@ -734,82 +719,6 @@ class _KalmanFit:
                 break
             self.calls += obj.calls
             obj, z, res, nll = obj2, z2, res2, nll2
-        return obj, z, res
-
-    def pruned(self, obj: _KalmanObjective, z: NDArray[np.float64],
-               res: Any) -> tuple[_KalmanObjective, NDArray[np.float64], Any]:
-        """A term kept where the noise model needs a large disturbance (a flat likelihood) can be what keeps
-        a sharp one out of reach (22:157: a load's Coulomb friction of 0.1 % of RMS τ_ref, which a model
-        without it does not have, needs 4 % where the plant needs 0.1 %): each kept term set to 0 at the
-        estimate, the noise model chosen again; the most likely refitted without it, kept if the record is
-        more likely."""
-        if obj.process_noise_nm <= _SHARPEN_ABOVE * self.ref:
-            return obj, z, res
-        nll, best = _nll(obj, z), None
-        for name in obj.names[7:]:
-            i = obj.names.index(name)
-            if not (self.free[i] and z[i] != 0.0):
-                continue
-            zi = z.copy()
-            zi[i] = 0.0
-            level, share = _noise_level(lambda lv, sh: self.objective(lv, sh).innovations(zi), self.pool)
-            self.calls += len(_PROCESS_NOISE_GRID) * len(_LOAD_SHARES)
-            o = self.objective(level, share)
-            nll_i = _nll(o, zi)
-            self.calls += o.calls
-            if nll_i < nll and (best is None or nll_i < best[0]):
-                best = (nll_i, i, zi)
-        if best is None:
-            return obj, z, res
-        _, i, zi = best
-        self.free[i] = False
-        obj2, z2, res2 = self.settle(zi)
-        if _nll(obj2, z2) < nll:
-            self.calls += obj.calls
-            return obj2, z2, res2
-        self.free[i] = True
-        self.calls += obj2.calls
-        return obj, z, res
-
-    def resplit(self, obj: _KalmanObjective, z: NDArray[np.float64],
-                res: Any) -> tuple[_KalmanObjective, NDArray[np.float64], Any]:
-        """Where the noise model needs a large disturbance, how friction and damping divide between motor and
-        load is barely seen (their sums are), yet a sharp predictor needs it right (22:198: F_cl +25 %,
-        B_l +13 % at 9 %): the divisions on a grid (``_SPLIT_SPAN``, sums held) under the predictor of
-        ``_CONTINUATION[0]``, and from the most likely the noise model and the fit again, kept if the record
-        is more likely."""
-        if obj.process_noise_nm <= _SHARPEN_ABOVE * self.ref:
-            return obj, z, res
-        # (motor's coordinate, load's, on a log scale): B_m and B_l, F_cm and F_cl
-        pairs = [(2, 3, True)] if self.free[2] and self.free[3] else []
-        if "F_cm" in obj.names and "F_cl" in obj.names:
-            i, j = obj.names.index("F_cm"), obj.names.index("F_cl")
-            if self.free[i] and self.free[j] and z[i] + z[j] > 0.0:
-                pairs.append((i, j, False))
-        if not pairs:
-            return obj, z, res
-        totals, axes = [], []
-        for i, j, log in pairs:
-            a, b = (math.exp(z[i]), math.exp(z[j])) if log else (z[i], z[j])
-            totals.append(a + b)
-            axes.append(np.clip(a / (a + b) + np.linspace(-_SPLIT_SPAN, _SPLIT_SPAN, _SPLIT_POINTS), 0.01, 0.99))
-        cells = []
-        for shares in itertools.product(*axes):
-            zc = z.copy()
-            for (i, j, log), total, s in zip(pairs, totals, shares):
-                zc[i], zc[j] = (math.log(total * s), math.log(total * (1.0 - s))) if log else (total * s, total * (1.0 - s))
-            cells.append(zc)
-        probe = self.objective(_CONTINUATION[0])
-        costs = list(self.pool.map(lambda c: _nll(probe, c), cells))
-        self.calls += len(cells)
-        best = cells[int(np.argmin(costs))]
-        if min(costs) >= _nll(probe, z):
-            return obj, z, res
-        obj2, z2, res2 = self.settle(best)
-        if _nll(obj2, z2) < _nll(obj, z):
-            self.calls += obj.calls
-            return obj2, z2, res2
-        self.calls += obj2.calls
         return obj, z, res
 
     def polished(self, obj: _KalmanObjective, z: NDArray[np.float64], res: Any) -> tuple[

@@ -42,7 +42,6 @@ from threadpoolctl import threadpool_limits
 from ..exceptions import IdentificationError
 from ..recording import Recording
 from .estimator import ModelTerms, PemFit, fit, significant_terms
-from .kalman import KalmanProblem
 from .options import IdentificationOptions, Method, options_from_mapping
 from .result import FitQuality, Identification, StageResult
 from .twomass import TwoMassParameters, modes
@@ -61,9 +60,6 @@ _QUANTIZATION_TARGET = 2.5
 #: Torque disturbance (relative to RMS τ_ref) of the estimate's noise model above which the stiffer starts
 #: are tried too: the most likely estimate is kept, so a noisy record only pays their time.
 _RESTART_DISTURBANCE = 0.01
-#: ... and above which the hedged fit is tried: half the level the assessment flags, as an estimate the
-#: sharpened fits left just under that level can still sit in a wrong basin (22:067: 3.5 %, K −2 %).
-_HEDGE_ABOVE = 0.02
 #: Stiffness factors of the further starts when the first fit leaves model error (:func:`_stiffer_starts`).
 _STIFFER_STARTS = (1.7, 3.0)
 #: Largest whole-sample torque delay tried beyond the hold's own (:func:`_delay_stage`).
@@ -243,11 +239,11 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
         st.start("restarts", 0.7)
         run, cell, pem, restarts = _stiffer_starts(run, cell, pem)
         st.done("restarts", starts=restarts)
-    from .assess import INNOVATION_UNDETERMINED
+    from .assess import DISTURBANCE_MISFIT, INNOVATION_UNDETERMINED
 
     # (a record the model cannot follow at all, its predictions 100× off, has no gap's basin to find)
     level = pem.innovations.rms if pem.innovations is not None else math.inf
-    if (start.epsilon_rad > 0.0 and pem.process_noise_nm > _HEDGE_ABOVE * _torque_rms(run)
+    if (start.epsilon_rad > 0.0 and pem.process_noise_nm >= DISTURBANCE_MISFIT * _torque_rms(run)
             and level < INNOVATION_UNDETERMINED):
         st.start("hedged", 0.8)
         run, pem = _hedged_stage(first, start, run, pem)
@@ -455,7 +451,7 @@ def _torque_rms(run: _Run) -> float:
     return float(np.sqrt(np.mean(run.rec.torque_ref ** 2)))
 
 
-def _pays_for(kp: KalmanProblem, pem: PemFit, other: PemFit, added: int) -> bool:
+def _pays_for(kp: Any, pem: PemFit, other: PemFit, added: int) -> bool:
     """Whether ``other`` makes the record of Kalman problem ``kp`` more likely than ``pem`` by more than the
     BIC's price of its ``added`` parameters (½·ln n_eff each)."""
     gain = (_likelihood_cost(pem) - _likelihood_cost(other)) * (len(kp.motor_position) - 1) * kp.outputs
@@ -503,8 +499,7 @@ def _stiffer_starts(run: _Run, cell: Any, pem: PemFit) -> tuple[_Run, Any, PemFi
         factor = chosen.base.K / run.base.K  # type: ignore[union-attr]
         run.notes.append(f"the estimate from the frequency-domain start left model error; from its stiffness "
                          f"×{factor:.2g} the record is {math.exp(0.5 * (tried[0]['negative_log_likelihood'] - _likelihood_cost(p))):.3g}× "
-                         "as likely per prediction error and it is kept (the gap softens the spring the frequency "
-                         "response sees)")
+                         "as likely and it is kept (the gap softens the spring the frequency response sees)")
         chosen = replace(chosen, notes=run.notes + chosen.notes)
     else:
         factors = ", ×".join(f"{t['stiffness_factor']:g}" for t in tried[1:])
@@ -555,7 +550,7 @@ def _delay_stage(run: _Run, pem: PemFit) -> tuple[PemFit, list[dict[str, float]]
 
 
 def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_Run, PemFit]:
-    """An estimate that needs more than ``_HEDGE_ABOVE``, tried again: the hedged Kalman fit
+    """An estimate that needs a disturbance the assessment flags, tried again: the hedged Kalman fit
     (``kalman_fit(hedged=True)``) from the torque-residual fit's ``start`` on the ``first`` run finds the
     gap's basin, the plain fit from there the estimate (the hedged predictor's own optimum can sit a few %
     off ε behind narrow intervals: 22:095); the more likely of the two plain estimates is kept. On
@@ -570,8 +565,8 @@ def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_
         return run, replace(pem, evaluations=spent)
     first.notes.append(f"the estimate needed a disturbance of {100 * pem.process_noise_nm / _torque_rms(run):.2g} % "
                        "of RMS τ_ref; from the fit hedging the gap's contacts (sigma points across the twist), the "
-                       f"estimate makes the record {math.exp(0.5 * (_likelihood_cost(pem) - _likelihood_cost(other))):.3g}× "
-                       "as likely per prediction error and is kept")
+                       f"estimate makes the record {math.exp(0.5 * (_likelihood_cost(pem) - _likelihood_cost(other))):.3g}× as likely "
+                       "and is kept")
     return first, replace(other, evaluations=spent)
 
 
