@@ -42,6 +42,7 @@ from threadpoolctl import threadpool_limits
 from ..exceptions import IdentificationError
 from ..recording import Recording
 from .estimator import ModelTerms, PemFit, fit, significant_terms
+from .kalman import KalmanProblem
 from .options import IdentificationOptions, Method, options_from_mapping
 from .result import FitQuality, Identification, StageResult
 from .twomass import TwoMassParameters, modes
@@ -451,7 +452,7 @@ def _torque_rms(run: _Run) -> float:
     return float(np.sqrt(np.mean(run.rec.torque_ref ** 2)))
 
 
-def _pays_for(kp: Any, pem: PemFit, other: PemFit, added: int) -> bool:
+def _pays_for(kp: KalmanProblem, pem: PemFit, other: PemFit, added: int) -> bool:
     """Whether ``other`` makes the record of Kalman problem ``kp`` more likely than ``pem`` by more than the
     BIC's price of its ``added`` parameters (½·ln n_eff each)."""
     gain = (_likelihood_cost(pem) - _likelihood_cost(other)) * (len(kp.motor_position) - 1) * kp.outputs
@@ -499,7 +500,8 @@ def _stiffer_starts(run: _Run, cell: Any, pem: PemFit) -> tuple[_Run, Any, PemFi
         factor = chosen.base.K / run.base.K  # type: ignore[union-attr]
         run.notes.append(f"the estimate from the frequency-domain start left model error; from its stiffness "
                          f"×{factor:.2g} the record is {math.exp(0.5 * (tried[0]['negative_log_likelihood'] - _likelihood_cost(p))):.3g}× "
-                         "as likely and it is kept (the gap softens the spring the frequency response sees)")
+                         "as likely per prediction error and it is kept (the gap softens the spring the frequency "
+                         "response sees)")
         chosen = replace(chosen, notes=run.notes + chosen.notes)
     else:
         factors = ", ×".join(f"{t['stiffness_factor']:g}" for t in tried[1:])
@@ -565,8 +567,8 @@ def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_
         return run, replace(pem, evaluations=spent)
     first.notes.append(f"the estimate needed a disturbance of {100 * pem.process_noise_nm / _torque_rms(run):.2g} % "
                        "of RMS τ_ref; from the fit hedging the gap's contacts (sigma points across the twist), the "
-                       f"estimate makes the record {math.exp(0.5 * (_likelihood_cost(pem) - _likelihood_cost(other))):.3g}× as likely "
-                       "and is kept")
+                       f"estimate makes the record {math.exp(0.5 * (_likelihood_cost(pem) - _likelihood_cost(other))):.3g}× "
+                       "as likely per prediction error and is kept")
     return first, replace(other, evaluations=spent)
 
 
