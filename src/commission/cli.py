@@ -236,14 +236,21 @@ class _Terminal:
             self._progress = None
 
     def summary(self, title: str, rows: list[tuple[str, str]]) -> None:
+        """The rows as a table; the ``file`` rows under it, one path per line and never wrapped (a
+        path folded at the table's edge cannot be copied)."""
         from rich.table import Table
+        from rich.text import Text
 
         table = Table(title=title, show_header=False, title_justify="left")
         table.add_column(style="bold")
         table.add_column()
         for k, v in rows:
-            table.add_row(k, v)
+            if k != "file":
+                table.add_row(k, v)
         self.out.print(table)
+        for k, v in rows:
+            if k == "file":
+                self.out.print(Text.assemble((k, "bold"), " ", v), soft_wrap=True)
 
 
 def _identifier(config: Config, args: argparse.Namespace, term: _Terminal) -> Any:
