@@ -29,7 +29,7 @@ import sys
 import time
 from collections import Counter, defaultdict
 from collections.abc import Iterable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -324,13 +324,15 @@ def compare(old_rows: list[dict[str, Any]], new_rows: list[dict[str, Any]]) -> l
 # running
 # ----------------------------------------------------------------------------------------------
 def _run_all(seed: int, indices: list[int], jobs: int, adapt: bool) -> Iterable[dict[str, Any]]:
+    """Members' results as they finish (with several processes a slow member does not hold back the
+    others' lines); the summary sorts them."""
     if jobs == 1:
         for i in indices:
             yield evaluate(seed, i, adapt)
         return
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
-        yield from pool.map(evaluate, [seed] * len(indices), indices, [adapt] * len(indices))
+        yield from (f.result() for f in as_completed([pool.submit(evaluate, seed, i, adapt) for i in indices]))
 
 
 def _git_commit() -> str:
@@ -397,6 +399,7 @@ def main(argv: list[str] | None = None) -> int:
         if out_file:
             out_file.close()
     elapsed = time.perf_counter() - t_start
+    rows.sort(key=lambda r: r["index"])
     lines = [f"bench wall time {elapsed / 60:.1f} min (simulation included); load average at the end "
              f"{os.getloadavg()[0]:.1f} (wall times inflate with load)", *summary(rows, timing)]
     report = ["", *lines, "", "by class:", *breakdown(rows), "", "worst members:", *worst(rows, args.worst)]
