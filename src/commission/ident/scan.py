@@ -124,7 +124,10 @@ def projected_cell(problem: ResidualProblem, rates: LoadRates, epsilon_rad: floa
     A = np.stack(cols, axis=1)
     if problem.keep is not None:  # samples a streamed link lost are no evidence
         A, target = A * problem.keep[:, None], target * problem.keep
-    sc = np.sqrt(np.sum(A * A, axis=0))
+    with np.errstate(over="ignore"):
+        sc = np.sqrt(np.sum(A * A, axis=0))
+    if not np.all(np.isfinite(sc)):  # a simulated shaft torque finite but beyond squaring: as unresolved
+        return ScanCell(float(epsilon_rad), float(phi), math.inf, None)
     sc[sc == 0.0] = 1.0
     coef = np.linalg.lstsq(A / sc, target, rcond=None)[0] / sc
     r = A @ coef - target
