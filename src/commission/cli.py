@@ -235,9 +235,9 @@ class _Terminal:
             self._progress.stop()
             self._progress = None
 
-    def summary(self, title: str, rows: list[tuple[str, str]]) -> None:
-        """The rows as a table; the ``file`` rows under it, one path per line and never wrapped (a
-        path folded at the table's edge cannot be copied)."""
+    def summary(self, title: str, rows: list[tuple[str, str]], files: Sequence[str] = ()) -> None:
+        """The rows as a table, then ``files`` under it, one path per line and never wrapped (a path
+        folded at the table's edge cannot be copied)."""
         from rich.table import Table
         from rich.text import Text
 
@@ -245,12 +245,10 @@ class _Terminal:
         table.add_column(style="bold")
         table.add_column()
         for k, v in rows:
-            if k != "file":
-                table.add_row(k, v)
+            table.add_row(k, v)
         self.out.print(table)
-        for k, v in rows:
-            if k == "file":
-                self.out.print(Text.assemble((k, "bold"), " ", v), soft_wrap=True)
+        for f in files:
+            self.out.print(Text.assemble(("file", "bold"), " ", f), soft_wrap=True)
 
 
 def _identifier(config: Config, args: argparse.Namespace, term: _Terminal) -> Any:
@@ -326,7 +324,7 @@ def _replay(args: argparse.Namespace, config: Config, term: _Terminal, identify:
                               str(args.replay), [Path(f) for f in result["files"]], tuning, true_plant=plant)
     if report is not None:
         result["files"].append(str(report))
-    term.summary(f"replay of {args.replay}", _rows(result))
+    term.summary(f"replay of {args.replay}", _rows(result), result["files"])
     _details(term, result)
     return result
 
@@ -462,7 +460,7 @@ def _with_drive(args: argparse.Namespace, term: _Terminal, config: Config, drive
         result["files"].append(str(check[2]))
         if str(out_dir / "result.json") not in result["files"]:  # --no-identify: the check alone
             result["files"].append(str(out_dir / "result.json"))
-    term.summary("commissioning run", _rows(result))
+    term.summary("commissioning run", _rows(result), result["files"])
     _details(term, result)
     return result
 
@@ -495,8 +493,7 @@ def _fleet(args: argparse.Namespace, config: Config, term: _Terminal, out_dir: P
             ("outcome", f"{c['ok']} ok ({summary.approximate} approximate), {c['failed']} failed, {c['crashed']} crashed"),
             ("ran on", where),
             ("backlash grew", ", ".join(f"{a.name} +{a.growth_deg:.3f}°" for a in summary.grown) or "on no axis")]
-    rows += [("file", f) for f in result["files"]]
-    term.summary("fleet", rows)
+    term.summary("fleet", rows, result["files"])
     return result
 
 
@@ -687,7 +684,6 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
         bc = result["backlash_check"]
         rows.append(("backlash check (§4.2)",
                      f"ε = {bc['epsilon_deg']:.3f}° ± {bc['spread_deg']:.3f}° over {bc['reversals']} reversals"))
-    rows += [("file", f) for f in result["files"]]
     return rows
 
 
