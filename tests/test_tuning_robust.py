@@ -270,6 +270,37 @@ def test_yaskawa_design_uses_the_drives_loop() -> None:
     assert pm_lo < s.robust.phase_margin_deg < pm_hi
 
 
+def test_the_identified_delay_is_designed_for() -> None:
+    """The whole-sample delay the identifier kept is the computation delay the design uses (less the
+    encoder's, which the record sees in the same sum; converted when the record's rate is not the loop's),
+    the configuration's figure winning over it. On a drive with 1 kHz current loop and 4 samples of delay the
+    design from the assumed one sample misses the 45° margin on the true plant, the one from the
+    identified delay keeps it."""
+    def ident(delay_samples: int, fs: float = FS) -> SimpleNamespace:
+        return SimpleNamespace(parameters=REFERENCE_PLANT, epsilon_rad=EPS, backlash_detected=True, sample_rate_hz=fs,
+                               current_loop={"bandwidth_hz": 1000.0, "delay_samples": delay_samples})
+
+    s = design(ident(4), TuningOptions())
+    dyn = s.dynamics
+    assert dyn is not None and dyn.computation_delay_samples.how is Source.IDENTIFIED
+    assert s.loop_delay_samples == pytest.approx(4.0) and "500 µs" in dyn.computation_delay_samples.source
+    truth = PlantParameters(current_loop_bandwidth_hz=1000.0, delay_samples=4)
+    v = verify(s, truth)
+    assert v.ready and v.margins.phase_margin_deg >= 45.0, v.reasons
+    assumed = design(ident(0), TuningOptions())  # none kept: the assumed sample
+    assert assumed.dynamics is not None and assumed.dynamics.computation_delay_samples.how is Source.ASSUMED
+    assert not verify(assumed, truth).ready
+    # one sample of a 4 kHz record is two of the 8 kHz loop
+    assert design(ident(1, fs=FS / 2), TuningOptions()).loop_delay_samples == pytest.approx(2.0)
+    # the description's encoder delay (0.5 samples) is part of the identified sum, not added to it
+    yaskawa = design(ident(2), TuningOptions(), description=load_description("yaskawa-sigma7"))
+    assert yaskawa.dynamics is not None and yaskawa.dynamics.encoder_delay_samples.how is Source.DESCRIPTION
+    assert yaskawa.dynamics.computation_delay_samples.how is Source.IDENTIFIED
+    assert yaskawa.loop_delay_samples == pytest.approx(2.0 * yaskawa.dynamics.sample_rate_hz.value / FS)
+    configured = design(ident(4), TuningOptions(computation_delay_samples=1.0))
+    assert configured.dynamics is not None and configured.dynamics.computation_delay_samples.how is Source.CONFIG
+    assert configured.loop_delay_samples == pytest.approx(1.0)
+
 def test_the_drives_gain_range_limits_the_gain() -> None:
     """A drive whose speed-loop gain parameter tops out at 30 Hz: K_v stops there, and says why."""
     desc = load_description("yaskawa-sigma7")
@@ -320,6 +351,8 @@ def test_simulated_drive_with_slow_current_loop_and_delay(tmp_path) -> None:
     assert tuning is not None and tuning.controller["verification"]["ready"], tuning.controller["verification"]
     s = tuning.settings
     assert tuning.verification.plant == truth  # the drive's own loop, not the design's assumptions
+    assert s.dynamics is not None and s.dynamics.computation_delay_samples.how is Source.IDENTIFIED
+    assert s.loop_delay_samples == 2.0  # the identified delay, not the assumed sample
     for gap in (False, True):
         pm, gm, stable = _pc_margins(_pc_loop(s, truth.two_mass, 1000.0, 2, gap=gap))
         assert stable and pm >= 45.0 and gm >= 8.0, (gap, pm, gm)

@@ -1,12 +1,13 @@
 """The drive's own loop as the design models it: current loop, loop clocks, delays, gain ranges.
 
 A record shows the current loop only when it is sampled fast enough (the 8 kHz trace shows a
-1 kHz loop; a 1–2 kHz streamed record cannot), and no record shows the computation and encoder
-delays apart from the sample's own. Each figure is therefore taken from the first of:
+1 kHz loop; a 1–2 kHz streamed record cannot), and a delay only in whole samples of its own rate,
+the computation and encoder delays together. Each figure is therefore taken from the first of:
 
 1. the config (``tuning.current_loop_bandwidth_hz``, ``computation_delay_samples``,
    ``encoder_delay_samples``, a ``sample_rate_hz`` that was set): the technician's entry;
-2. the identification (the current-loop lag the identifier kept);
+2. the identification (the current-loop lag and the whole-sample delay the identifier kept; the record
+   shows the computation and encoder delays only as their sum, so the encoder's is taken off it);
 3. the drive description's ``loop:`` block, with its stated source;
 4. a stated conservative assumption (``assumed_*``).
 
@@ -90,11 +91,24 @@ def resolve_dynamics(model: IdentifiedModel, options: TuningOptions, description
             return d
         return Sourced(assumed, Source.ASSUMED, f"tuning.assumed_{key}: nothing known about this drive", True)
 
-    comp = delay(options.computation_delay_samples, "computation_delay_samples", "computation_delay_s",
-                 options.assumed_computation_delay_samples)
     enc = delay(options.encoder_delay_samples, "encoder_delay_samples", "encoder_delay_s",
                 options.assumed_encoder_delay_samples)
+    if options.computation_delay_samples is None and model.delay_s is not None:
+        comp = _identified_computation_delay(model.delay_s / Ts, Ts, enc, record)
+    else:
+        comp = delay(options.computation_delay_samples, "computation_delay_samples", "computation_delay_s",
+                     options.assumed_computation_delay_samples)
     return DriveDynamics(fs, pos, cl, comp, enc, *_gain_limits(description, where))
+
+
+def _identified_computation_delay(total: float, Ts: float, enc: Sourced, record: str) -> Sourced:
+    """The computation delay a record shows [velocity-loop samples]: the record sees the torque's delay and
+    the encoder's together (``total``, beyond the hold's sample), so the encoder's is taken off once."""
+    enc_samples = float(enc.value or 0.0)
+    less = f", less the encoder delay ({enc_samples:g}, {enc.how.value})" if enc_samples else ""
+    return Sourced(max(total - enc_samples, 0.0), Source.IDENTIFIED,
+                   f"identified from {record}: {total * Ts * 1e6:.0f} µs ({total:g} velocity-loop samples) from the "
+                   f"torque reference to the encoders' response{less}")
 
 
 def _gain_limits(description: Any | None, where: str) -> tuple[dict[str, tuple[float, float]], str]:

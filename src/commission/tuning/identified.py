@@ -45,6 +45,9 @@ class IdentifiedModel:
     backlash_detected: bool
     current_loop_hz: float | None
     """The current-loop bandwidth the identifier kept [Hz] (None: none kept)."""
+    delay_s: float | None
+    """The whole-sample delay the identifier kept beyond the hold's sample, from the torque reference to the
+    encoders' response (computation and encoder delay together) [s] (None: none kept)."""
     sample_rate_hz: float | None
     """The record's sample rate [Hz] (None: no record)."""
     fit: FitFacts
@@ -67,17 +70,19 @@ def read_identification(model: Any, *, epsilon_rad: float | None = None,
     if isinstance(model, TwoMassParameters):
         eps = float(epsilon_rad or 0.0)
         band, why = _band(None, None, excitation_band_hz)
-        return IdentifiedModel(model, eps, eps > 0.0, None, None, FitFacts(), band, why, None, model)
+        return IdentifiedModel(model, eps, eps > 0.0, None, None, None, FitFacts(), band, why, None, model)
     params = getattr(model, "parameters", None)
     if not isinstance(params, TwoMassParameters):
         raise TuningError(f"the design needs an Identification or TwoMassParameters, got {type(model).__name__}")
     eps = float(model.epsilon_rad if epsilon_rad is None else epsilon_rad)
-    cl = (getattr(model, "current_loop", None) or {}).get("bandwidth_hz")
+    loop = getattr(model, "current_loop", None) or {}
+    cl = loop.get("bandwidth_hz")
     fs = getattr(model, "sample_rate_hz", None)
     fs = float(fs) if isinstance(fs, (int, float)) and fs > 0 else None
+    kept = int(loop.get("delay_samples") or 0)
     band, why = _band(getattr(model, "measured_band_hz", None), fs, excitation_band_hz)
     return IdentifiedModel(params, eps, bool(getattr(model, "backlash_detected", True)),
-                           float(cl) if cl else None, fs, _fit(model), band, why,
+                           float(cl) if cl else None, kept / fs if kept > 0 and fs else None, fs, _fit(model), band, why,
                            getattr(model, "friction", None) or None, model)
 
 

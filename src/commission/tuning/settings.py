@@ -95,8 +95,9 @@ class TuningOptions(BaseModel):
         "the identification kept, else the drive description's, else assumed_current_loop_bandwidth_hz")
     computation_delay_samples: float | None = Field(
         None, ge=0, le=8, description="the drive's delay from the velocity sample to the torque reserved for "
-        "the current loop, beyond the hold's own sample [velocity-loop samples]; None = the drive "
-        "description's, else assumed_computation_delay_samples")
+        "the current loop, beyond the hold's own sample [velocity-loop samples]; None = the whole-sample delay "
+        "the identification kept less the encoder delay, else the drive description's, else "
+        "assumed_computation_delay_samples")
     encoder_delay_samples: float | None = Field(
         None, ge=0, le=8, description="delay of the position measurement [velocity-loop samples]; None = the "
         "drive description's, else assumed_encoder_delay_samples")
