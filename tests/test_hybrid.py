@@ -180,6 +180,17 @@ def test_data_the_model_cannot_explain_give_a_flagged_result_not_nothing() -> No
     assert any("unexplained" in r for r in res.fit.reasons)
 
 
+def test_likelihood_ratios_past_a_floats_range_are_written_as_powers_of_ten() -> None:
+    """A record no model explains (a random-walk velocity beside a drive with 3 samples of delay) moved its
+    likelihood by ~1500 e-folds per sample between two delays: the note's exp() overflowed and the whole
+    identification ended in OverflowError instead of a flagged result."""
+    from commission.ident.hybrid import _likelier
+
+    assert _likelier(11439.6, 9573.4) == "10^405"
+    assert _likelier(2.0, 1.0) == f"{math.exp(0.5):.3g}"
+    assert _likelier(math.inf, 1.0) == "∞"
+
+
 def test_options_are_validated() -> None:
     with pytest.raises(ValueError):
         IdentificationOptions(band_hz=(400.0, 0.1))

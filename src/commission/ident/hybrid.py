@@ -464,6 +464,18 @@ def _likelihood_cost(pem: PemFit) -> float:
     return pem.innovations.negative_log_likelihood() if pem.innovations is not None else math.inf
 
 
+def _likelier(nll_before: float, nll_after: float) -> str:
+    """How many times as likely per prediction error the record is at ``nll_after`` than at ``nll_before``
+    (negative log-likelihoods per prediction error), for a note: a power of ten past a float's range (a
+    record no model explains moves its likelihood by thousands of e-folds)."""
+    log_ratio = 0.5 * (nll_before - nll_after)
+    if log_ratio < 700.0:
+        return f"{math.exp(log_ratio):.3g}"
+    if not math.isfinite(log_ratio):  # a likelihood that could not be computed (nan: neither could)
+        return "∞" if log_ratio > 0 else "?"
+    return f"10^{log_ratio / math.log(10.0):.0f}"
+
+
 def _stiffer_starts(run: _Run, cell: Any, pem: PemFit) -> tuple[_Run, Any, PemFit, list[dict[str, float]]]:
     """The scan, the fit and the estimate again from the start with its stiffness raised by each of
     ``_STIFFER_STARTS`` in turn (the damping by its square root, ζ kept), while each makes the record
@@ -499,7 +511,7 @@ def _stiffer_starts(run: _Run, cell: Any, pem: PemFit) -> tuple[_Run, Any, PemFi
     if chosen is not run:
         factor = chosen.base.K / run.base.K  # type: ignore[union-attr]
         run.notes.append(f"the estimate from the frequency-domain start left model error; from its stiffness "
-                         f"×{factor:.2g} the record is {math.exp(0.5 * (tried[0]['negative_log_likelihood'] - _likelihood_cost(p))):.3g}× "
+                         f"×{factor:.2g} the record is {_likelier(tried[0]['negative_log_likelihood'], _likelihood_cost(p))}× "
                          "as likely per prediction error and it is kept (the gap softens the spring the frequency "
                          "response sees)")
         chosen = replace(chosen, notes=run.notes + chosen.notes)
@@ -546,7 +558,7 @@ def _delay_stage(run: _Run, pem: PemFit) -> tuple[PemFit, list[dict[str, float]]
     if best_d:
         run.notes.append(f"the torque acts {best_d} sample{'s' if best_d > 1 else ''} after its reference beyond the "
                          "hold's own (the drive's computation and encoder delays): the record is "
-                         f"{math.exp(0.5 * (tried[0]['negative_log_likelihood'] - _likelihood_cost(best))):.3g}× as "
+                         f"{_likelier(tried[0]['negative_log_likelihood'], _likelihood_cost(best))}× as "
                          "likely per sample as with the current loop's lag alone")
     return replace(best, evaluations=spent), tried
 
@@ -567,7 +579,7 @@ def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_
         return run, replace(pem, evaluations=spent)
     first.notes.append(f"the estimate needed a disturbance of {100 * pem.process_noise_nm / _torque_rms(run):.2g} % "
                        "of RMS τ_ref; from the fit hedging the gap's contacts (sigma points across the twist), the "
-                       f"estimate makes the record {math.exp(0.5 * (_likelihood_cost(pem) - _likelihood_cost(other))):.3g}× "
+                       f"estimate makes the record {_likelier(_likelihood_cost(pem), _likelihood_cost(other))}× "
                        "as likely per prediction error and is kept")
     return first, replace(other, evaluations=spent)
 
