@@ -198,6 +198,8 @@ def test_summary_on_stdout_and_a_last_line_saying_what_next(quick_sim_run, tmp_p
     lines = proc.stdout.strip().splitlines()
     assert "backlash ε" in proc.stdout and "controller ready" in proc.stdout
     assert "backlash ε" not in proc.stderr and "next:" not in proc.stderr
+    # the drive's loop the design assumed, said where it comes from (here nothing knew the current loop)
+    assert "drive loop (design)" in proc.stdout and "current loop 2000 Hz (assumed" in proc.stdout
     assert lines[-1] == (f"next: open the report at {tmp_path / 'report.html'}; the settings are ready: "
                          "to write them, commission the axis itself with --apply")
     assert sum(line.startswith("next:") for line in lines) == 1

@@ -677,6 +677,7 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
                                  if ctl["position_loop"].get("reference_filter_time_constant_s") else "")),
             ("notch / backlash comp.", f"{notch} / {bc.get('amount_rad', 0.0) * 1e3:.3g} mrad"),
             ("margins", f"PM {m['phase_margin_deg']:.1f}°  GM {m['gain_margin_db']:.1f} dB"),
+            *_drive_loop_rows(ctl),
             *_robust_rows(ctl),
             ("controller ready", "yes" if ver.get("ready") else "NO: " + "; ".join(ver.get("reasons", []))),
         ]
@@ -764,6 +765,26 @@ def _next_step(args: argparse.Namespace, result: dict[str, Any]) -> str:
         return (f"next: {see}; the settings are ready (--apply writes through a drive's parameter map: "
                 "try `commission --sim --sim-link canopen --drive sim --apply`)")
     return f"next: {see}; the settings are ready: run again with --apply to write them to the drive"
+
+
+def _drive_loop_rows(ctl: dict[str, Any]) -> list[tuple[str, str]]:
+    """The drive's loop the design assumed, each figure with where it came from ('confirm': an
+    assumption, or a description's figure not from the drive's manual)."""
+    sources = (ctl.get("drive_model") or {}).get("sources") or {}
+
+    def said(key: str, value: str) -> str:
+        src = sources[key]
+        return f"{value} ({src['from']}{', confirm' if src.get('confirm') else ''})"
+
+    items = []
+    if "current_loop_bandwidth_hz" in sources:
+        bw = sources["current_loop_bandwidth_hz"]["value"]
+        items.append("current loop " + said("current_loop_bandwidth_hz", "ideal" if bw is None else f"{bw:.0f} Hz"))
+    if "computation_delay_samples" in sources and "encoder_delay_samples" in sources:
+        comp, enc = (float(sources[k]["value"] or 0.0) for k in ("computation_delay_samples", "encoder_delay_samples"))
+        items.append(f"delay {said('computation_delay_samples', f'computation {comp:g}')} + "
+                     f"{said('encoder_delay_samples', f'encoder {enc:g}')} samples")
+    return [("drive loop (design)", ";  ".join(items))] if items else []
 
 
 def _robust_rows(ctl: dict[str, Any]) -> list[tuple[str, str]]:
