@@ -274,7 +274,7 @@ def _start_stage(run: _Run) -> None:
     first = run.problem
 
     def encoders(problem: Any) -> Any:
-        return load_encoder_start(problem, top)
+        return load_encoder_start(problem, top, threads=opt.threads)
 
     # with a load encoder, the encoders' start (no simulation, no FRD) at the first low-pass is the start: the
     # FRD's resonance is pulled low by the gap on backlash-rich records, and the low-pass chosen from a low

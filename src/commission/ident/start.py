@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -293,7 +294,7 @@ def _deadzone(z: NDArray[np.float64], eps: float) -> NDArray[np.float64]:
     return np.where(z > eps, z - eps, np.where(z < -eps, z + eps, 0.0))
 
 
-def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float) -> EncoderStart | None:
+def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads: int = 1) -> EncoderStart | None:
     """Every parameter and ε from both encoders by linear least squares, no simulation.
 
     With the load's position measured, the shaft torque is K·y + D·ẏ of the measured twist
@@ -304,7 +305,8 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float) -> Enco
     are linear in the parameters for a given ε (equation error, the same low-pass as the residual):
     ε is scanned (log-spaced, then refined around the best), each ε one small least-squares
     problem. Noise in the measured twist biases the damping (errors in variables), so this is the
-    estimator's start, not its answer. None when no ε gives positive inertias and stiffness.
+    estimator's start, not its answer. None when no ε gives positive inertias and stiffness. The ε are
+    shared out over ``threads`` (each its own problem: the same answer with any number).
     """
     if problem.load_position is None:
         return None
@@ -340,13 +342,14 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float) -> Enco
         return (float(np.sqrt(np.mean(r * r))) if ok else math.inf), th
 
     grid = np.concatenate(([0.0], np.geomspace(math.radians(0.005), max(epsilon_top_rad, math.radians(0.01)), 40)))
-    costs = [solve(e) for e in grid]
-    i = int(np.argmin([cst for cst, _ in costs]))
-    if not math.isfinite(costs[i][0]):
-        return None
-    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
-    fine = np.linspace(lo, hi, 11)
-    refined = [solve(e) for e in fine]
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        costs = list(pool.map(solve, grid))
+        i = int(np.argmin([cst for cst, _ in costs]))
+        if not math.isfinite(costs[i][0]):
+            return None
+        lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+        fine = np.linspace(lo, hi, 11)
+        refined = list(pool.map(solve, fine))
     j = int(np.argmin([cst for cst, _ in refined]))
     (cost, th), eps = (refined[j], fine[j]) if refined[j][0] <= costs[i][0] else (costs[i], grid[i])
     J_m, B_m, J_l, B_l, K, D, F_m, F_l = (float(v) for v in th)
