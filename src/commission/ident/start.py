@@ -311,7 +311,6 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads
     if problem.load_position is None:
         return None
     fs = problem.sample_rate_hz
-    Ts = 1.0 / fs
     c = problem.spline
     x = np.concatenate((c[:, 3], [c[-1].sum()]))
     xl = problem.load_position
@@ -353,7 +352,6 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads
     j = int(np.argmin([cst for cst, _ in refined]))
     (cost, th), eps = (refined[j], fine[j]) if refined[j][0] <= costs[i][0] else (costs[i], grid[i])
     J_m, B_m, J_l, B_l, K, D, F_m, F_l = (float(v) for v in th)
-    del Ts
     S = max(abs(B_m) + abs(B_l), 1e-9)
     p = TwoMassParameters(J_m=J_m, J_l=J_l, B_m=max(B_m, 1e-3 * S), B_l=max(B_l, 1e-3 * S), K=K,
                           D=max(D, 1e-6 * K))
