@@ -29,9 +29,10 @@ browser:
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 		$$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium; }
 
-## test: the test suite
+## test: the test suite, one worker per core (at most 4: each identification runs 2 threads); a test
+## file stays on one worker, so the identifications its tests share are made once
 test: $(STAMP) browser
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --maxprocesses 4 --dist loadfile
 
 ## bench: accuracy and speed benchmarks (figures printed and appended to bench/results/RESULTS.md)
 bench: $(STAMP)
