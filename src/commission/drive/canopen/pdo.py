@@ -22,8 +22,9 @@ thread switch in between). A late host costs a held setpoint, not a wrong
 record: sample j of the record is cycle c0 + 1 + j on the drive's clock, with the
 torque the drive says it applied; the setpoints are played in order, a late one
 pausing the excitation rather than being skipped (see :class:`SyncedStream`). A cycle whose TPDO never arrived is marked
-lost (the SYNC counter says which); a SYNC lost on the way leaves the next
-TPDO unattributable, so that cycle is marked lost too.
+lost (the SYNC counter says which); a SYNC lost on the way leaves the TPDO heard
+before it unattributable (it may be the lost SYNC's, its own lost too), so that
+cycle is marked lost too.
 """
 
 from __future__ import annotations
@@ -325,6 +326,7 @@ class SyncedStream:
 
     # -- notifier thread ----------------------------------------------------------------------------------
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        previous = self._cycle
         if self.counter_overflow >= 2 and len(data) >= 1:
             raw = data[0]
             if self._last_raw is None:
@@ -344,6 +346,11 @@ class SyncedStream:
             self._c0 = cycle
         i = cycle - self._c0
         rec = self.record
+        j = previous - self._c0
+        if cycle - previous > 1 and 0 <= j < rec.received.size and rec.received[j]:
+            # a SYNC was lost: the one TPDO heard since the last SYNC heard may be the lost SYNC's (its own
+            # cycle's TPDO lost too), which would put a later position and torque on this cycle
+            rec.ambiguous[j] = True
         if i < rec.received.size:
             rec.sync_time[i] = timestamp
         if i + 1 >= rec.received.size:
