@@ -394,17 +394,19 @@ class SyncedStream:
             k -= 1
             self._pause += 1
             self.longest_pause = max(self.longest_pause, self._pause)
-            if i - k > self.max_lag_cycles and k + 1 < n:
+            if i - k > self.max_lag_cycles:
                 # paused too long in all: every held cycle adds the held torque's impulse, so the axis
-                # would drift beyond what the envelope check predicted; catch up with the drive's clock
+                # would drift beyond what the envelope check predicted; catch up with the drive's clock,
+                # or end the excitation when the setpoint held is the last one (it has acted already)
+                if k + 1 >= n:
+                    self._finish(i)
+                    return
                 k = min(n - 1, i - self.max_lag_cycles)
                 self.catch_ups += 1
         else:
             self._pause = 0
             if k == n:
-                self.last_target_cycle = i  # the last setpoint acts in this cycle: the record ends here
-                self._done.set()
-                self._send(self.rpdo_cob, self._pack(0))
+                self._finish(i)
                 return
         self._handled_at = handled
         value = int(self._targets[k])
@@ -415,6 +417,12 @@ class SyncedStream:
         sync_at = rec.sync_time[i]
         rec.latency[i] = time.time() - sync_at if np.isfinite(sync_at) else np.nan
         self.samples_done = k + 1
+
+    def _finish(self, i: int) -> None:
+        """The last setpoint acts in cycle ``i``: the record ends there, and the drive gets zero torque."""
+        self.last_target_cycle = i
+        self._done.set()
+        self._send(self.rpdo_cob, self._pack(0))
 
     # -- main thread ------------------------------------------------------------------------------------------
     def arm(self, targets: NDArray[np.int16], max_cycles: int) -> None:
