@@ -124,14 +124,20 @@ class PtyLink:
 
     #: bytes may reach the host up to this early: pacing sleeps in steps of at least this long [s]
     PACE_SLACK_S = 0.001
+    #: how long a write waits for room when the host stops reading [s]; then the bytes are dropped
+    #: (counted in ``dropped_bytes``), as a serial line drops what nobody reads, instead of blocking
+    #: the device's thread, and :meth:`hang_up` behind it, for ever once the pty's ~20 kB are full
+    WRITE_STALL_S = 1.0
 
     def __init__(self, line_rate_bps: float | None = None, full_duplex: bool = False) -> None:
         self.master, self._slave = os.openpty()
+        os.set_blocking(self.master, False)
         tty.setraw(self._slave)  # no echo, no CR/LF translation before the host configures it
         self.path = os.ttyname(self._slave)
         self.line_rate_bps = line_rate_bps
         self.bytes_in = 0
         self.bytes_out = 0
+        self.dropped_bytes = 0
         self.closed = False
         self._write_lock = threading.Lock()
         self.full_duplex = full_duplex
@@ -166,6 +172,8 @@ class PtyLink:
             if not ready:
                 return b""
             data = os.read(self.master, 4096)
+        except BlockingIOError:
+            return b""
         except (OSError, ValueError) as err:
             if self.closed or getattr(err, "errno", None) in (errno.EIO, errno.EBADF):
                 return None
@@ -181,13 +189,21 @@ class PtyLink:
                 return False
             self._occupy(len(data), "out")
             view = memoryview(data)
-            try:
-                while view:
-                    n = os.write(self.master, view)
-                    view = view[n:]
-            except OSError:
-                return False
-            self.bytes_out += len(data)
+            deadline = time.monotonic() + self.WRITE_STALL_S
+            while view:
+                try:
+                    view = view[os.write(self.master, view):]
+                    continue
+                except BlockingIOError:
+                    pass
+                except OSError:
+                    return False
+                wait_s = deadline - time.monotonic()
+                if wait_s <= 0.0:
+                    self.dropped_bytes += len(view)
+                    break
+                select.select([], [self.master], [], min(wait_s, 0.05))
+            self.bytes_out += len(data) - len(view)
             return True
 
     def hang_up(self) -> None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import time
 
 import numpy as np
@@ -24,6 +25,7 @@ from sim_drive.device import SimulatedDevice
 from sim_drive.serial_slave import (
     LinkFault,
     ModbusRtuServer,
+    PtyLink,
     SlcanAdapter,
     parse_fault,
     parse_slcan_frame,
@@ -207,6 +209,34 @@ def test_slcan_cable_pulled_mid_run(tmp_path):
         # the drive's heartbeat consumer stops the axis on its own
         assert wait_for(lambda: adapter.device.state is State.FAULT and stopped(adapter.device))
         assert adapter.device.progress[0] >= 3000
+
+
+def test_a_host_that_stops_reading_blocks_neither_the_device_nor_its_hang_up():
+    """A pty holds ~20 kB for a host that does not read; beyond that the device drops what it sends
+    (as a serial line does) and stays able to close. A write that blocked held the link's lock, and
+    the adapter's close() then waited for it for ever: a test's teardown hung CI."""
+    link = PtyLink()
+    link.WRITE_STALL_S = 0.1
+    line = b"t701105\r"  # a heartbeat, as the adapter forwards it
+    ended = threading.Event()
+
+    def device_sends() -> None:
+        while link.write(line * 50):
+            pass
+        ended.set()
+
+    threading.Thread(target=device_sends, daemon=True).start()
+    assert wait_for(lambda: link.dropped_bytes > 0, 10.0), "the device's write blocks while the host reads nothing"
+    held = os.open(link.path, os.O_RDONLY | os.O_NONBLOCK)  # the host opens the port and reads again
+    try:
+        assert wait_for(lambda: len(os.read(held, 65536)) > 0, 3.0)
+        t0 = time.monotonic()
+        link.hang_up()
+        assert time.monotonic() - t0 < 2.0
+        assert ended.wait(3.0), "the device's writes go on after the hang-up"
+        assert link.bytes_out > 4096  # what the pty held reached the host; only the rest was dropped
+    finally:
+        os.close(held)
 
 
 def test_modbus_cable_pulled_mid_run(tmp_path):
