@@ -27,7 +27,7 @@ stream figures (lost cycles, late setpoints, host response p99), and the wall ti
    gives (setpoints held per cycle, position per cycle), both against the plant's true parameters.
 
 Run: python bench/bench_streamed.py [--runs 20] [--slcan-runs 5] [--no-hog] [--tune] [--robustness-only]
-     [--plants-only] [--seeds 3]
+     [--plants-only] [--bus-only] [--seeds 3]
 """
 
 from __future__ import annotations
@@ -176,7 +176,7 @@ def robustness() -> None:
                               burst=burst)
         t0 = time.perf_counter()
         res = identify(rec, cfg.identification)
-        d = deviations(res, truth)
+        d = truth_deviations(res, truth)
         flag = "  (approximate)" if d["approximate"] else ""
         print(f"  {label:<26} Δε {d['eps_deg']:+.4f}°  ΔJ_m {d['J_m']:+.3%}  ΔJ_l {d['J_l']:+.3%}  ΔK {d['K']:+.3%}  "
               f"residual {d['residual']:.2%}{flag}  {time.perf_counter() - t0:.1f} s")
@@ -211,7 +211,7 @@ def streamed_record(truth, targets, ticks: int, *, rng, late: float = 0.0, lost:
     return Recording.uniform(rate, torque, velocity, motor_position=position, metadata=meta)
 
 
-def deviations(res, truth) -> dict:
+def truth_deviations(res, truth) -> dict:
     """ε in degrees, J_m, J_l, K relative, against the plant's true parameters; the fit's flag."""
     fit = res.to_dict(None).get("fit", {})
     out = {"eps_deg": float(np.degrees(res.epsilon_rad) - truth.epsilon_deg),
@@ -256,7 +256,7 @@ def plants(seeds: int) -> None:
             for kind, rec in (("direct", direct), ("streamed", streamed)):
                 t0 = time.perf_counter()
                 try:
-                    d = deviations(identify(rec, cfg.identification), truth)
+                    d = truth_deviations(identify(rec, cfg.identification), truth)
                 except Exception as err:  # noqa: BLE001 - a bench counts a failure, it does not stop
                     d = {"error": f"{type(err).__name__}: {err}"}
                 d["seconds"] = time.perf_counter() - t0
@@ -281,6 +281,7 @@ def main() -> None:
     ap.add_argument("--tune", action="store_true", help="also design and verify the controller (slower)")
     ap.add_argument("--robustness-only", action="store_true", help="only parts 4 and 5 (no bus, no processes)")
     ap.add_argument("--plants-only", action="store_true", help="only part 5")
+    ap.add_argument("--bus-only", action="store_true", help="only parts 1-3 (the runs over a bus)")
     ap.add_argument("--seeds", type=int, default=3, help="noise seeds per plant in part 5 (default 3)")
     opt = ap.parse_args()
     if opt.plants_only:
@@ -308,6 +309,8 @@ def main() -> None:
             series("slcan streamed (--drive generic-cia402)", opt.slcan_runs,
                    lambda sim: ["--port", sim.port, "--interface", "slcan", "--drive", "generic-cia402"],
                    ref, tmp, opt.tune, hog, [])
+    if opt.bus_only:
+        return
     robustness()
     plants(opt.seeds)
 

@@ -127,7 +127,7 @@ class PtyLink:
     #: how long a write waits for room when the host stops reading [s]; then the bytes are dropped
     #: (counted in ``dropped_bytes``), as a serial line drops what nobody reads, instead of blocking
     #: the device's thread, and :meth:`hang_up` behind it, for ever once the pty's ~20 kB are full
-    WRITE_STALL_S = 1.0
+    WRITE_STALL_S = 0.5
 
     def __init__(self, line_rate_bps: float | None = None, full_duplex: bool = False) -> None:
         self.master, self._slave = os.openpty()

@@ -10,6 +10,7 @@ import os
 import threading
 import time
 
+import can
 import numpy as np
 import pytest
 
@@ -17,7 +18,7 @@ from commission.cli import main
 from commission.config import Config
 from commission.drive import State, open_drive
 from commission.drive.modbus import ExceptionCode, ModbusDrive, crc16, decode_registers, encode_registers
-from commission.drive.slcan import _valid_frame
+from commission.drive.slcan import WRITE_TIMEOUT_S, CheckedSlcanBus, _valid_frame
 from commission.exceptions import DriveError, DriveNotFound, DriveTimeout
 from commission.mcaplog import read_recording
 from commission.sequencer import Sequencer
@@ -237,6 +238,27 @@ def test_a_host_that_stops_reading_blocks_neither_the_device_nor_its_hang_up():
         assert link.bytes_out > 4096  # what the pty held reached the host; only the rest was dropped
     finally:
         os.close(held)
+
+
+def test_an_adapter_that_takes_nothing_fails_the_send_instead_of_blocking_the_host():
+    """A hung adapter (here: a pty nobody reads) fills the port's buffer; the host's next send fails
+    within the write timeout with its cause, where python-can's would wait for ever."""
+    master, slave = os.openpty()
+    bus = CheckedSlcanBus(os.ttyname(slave), sleep_after_open=0)
+    try:
+        msg = can.Message(arbitration_id=0x201, data=bytes(8), is_extended_id=False)
+        t0 = time.monotonic()
+        with pytest.raises(can.CanOperationError, match=r"cannot write \(Write timeout\): it took nothing for 2 s"):
+            for _ in range(10_000):  # 250 kB: far beyond what the pty holds
+                bus.send(msg)
+        assert time.monotonic() - t0 < 10 * WRITE_TIMEOUT_S
+        with pytest.raises(can.CanOperationError, match="it took nothing"):
+            bus.send(msg)  # the link is known to be gone: at once
+    finally:
+        bus.serialPortOrig.write_timeout = 0  # shutdown's own "C" must not wait either
+        bus.shutdown()
+        os.close(master)
+        os.close(slave)
 
 
 def test_modbus_cable_pulled_mid_run(tmp_path):

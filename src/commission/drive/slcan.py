@@ -54,6 +54,9 @@ FAST_ANSWER_S = 0.3
 #: schedulers sit between the nodes (0.3 s timed out now and then on a loaded 2-core machine)
 MIN_SDO_TIMEOUT_S = 1.0
 MIN_HEARTBEAT_TIMEOUT_MS = 1000
+#: a line the adapter does not take within this long fails the send [s] (a hung adapter, or a USB
+#: link that stalled), where python-can's would wait for ever
+WRITE_TIMEOUT_S = 2.0
 
 _FRAME = re.compile(r"^(?:t[0-9A-Fa-f]{3}([0-8])|T[0-9A-Fa-f]{8}([0-8]))([0-9A-Fa-f]*)(?:[0-9A-Fa-f]{4})?\r$")
 _REMOTE = re.compile(r"^(?:r[0-9A-Fa-f]{3}[0-8]|R[0-9A-Fa-f]{8}[0-8])(?:[0-9A-Fa-f]{4})?\r$")
@@ -84,6 +87,7 @@ class CheckedSlcanBus(slcanBus):
         self.frames = 0
         self.failure: can.CanOperationError | None = None
         super().__init__(channel, **kwargs)
+        self.serialPortOrig.write_timeout = WRITE_TIMEOUT_S
 
     def _read(self, timeout: float | None) -> str | None:
         """One line from the adapter (with its terminator), or None after ``timeout``.
@@ -147,15 +151,25 @@ class CheckedSlcanBus(slcanBus):
             self.frames += 1
         return line
 
+    def _write(self, string: str) -> None:
+        """python-can's, without its tcdrain after every line: that waits, with no time limit, until
+        the adapter has taken the line; the write timeout bounds the wait instead."""
+        try:
+            self.serialPortOrig.write(string.encode() + self.LINE_TERMINATOR)
+        except (serial.SerialException, OSError, TypeError) as err:
+            raise can.CanOperationError(f"Could not write to serial device: {err}") from err
+
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         if self.failure is not None:
             raise can.CanOperationError(str(self.failure))
         try:
-            super().send(msg, timeout)
+            super().send(msg, WRITE_TIMEOUT_S if timeout is None else timeout)
         except can.CanOperationError as err:
             cause = err.__cause__ or err
-            self.failure = can.CanOperationError(
-                f"slcan adapter on {self.port_name}: cannot write ({cause}): cable pulled or adapter unplugged?")
+            why = ("it took nothing for {:g} s: the adapter hangs or its USB link stalled".format(
+                self.serialPortOrig.write_timeout) if isinstance(cause, serial.SerialTimeoutException)
+                else "cable pulled or adapter unplugged?")
+            self.failure = can.CanOperationError(f"slcan adapter on {self.port_name}: cannot write ({cause}): {why}")
             raise self.failure from err
 
     def _send_periodic_internal(self, msgs: Any, period: float, duration: float | None = None,
