@@ -12,10 +12,12 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import re
 import shutil
 import socket
 import subprocess
 import sys
+import threading
 import time
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -30,6 +32,7 @@ from commission import fleet
 from commission.config import load_config
 from commission.csvlog import write_csv
 from commission.excitation import chirp
+from commission.fleet import cluster
 from commission.fleet.report import axis_trends
 from commission.mcaplog import write_recording
 from commission.plant import Plant, PlantParameters
@@ -276,6 +279,63 @@ def test_a_worker_crash_is_retried_once_then_recorded(tmp_path: Path) -> None:
     assert (again.identified, again.skipped, again.counts["ok"]) == (1, 2, 1)
     rows = {Path(r["source"]).name: r for r in pq.read_table(out / "fleet.parquet").to_pylist()}
     assert len(rows) == 3 and rows["crash-always.mcap"]["status"] == "ok"
+
+
+def test_a_cluster_that_loses_every_worker_ends_the_run_and_keeps_what_came_in(tmp_path: Path,
+                                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """The only worker (no nanny to restart it) is killed while it identifies a log: Dask would keep the logs
+    waiting for ever; the run stops after NO_WORKERS_S with what it has, and the table holds every log that
+    finished."""
+    from distributed import Client
+
+    monkeypatch.setattr(cluster, "NO_WORKERS_S", 3.0)
+    folder = tmp_path / "logs"
+    for i in range(3):
+        _simulate(folder / f"ax-{i}.mcap", 0.35, serial=f"D-{i}", seed=31 + i)
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True}
+    scheduler = subprocess.Popen([sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                                  "--no-dashboard", "--dashboard-address", "127.0.0.1:0"], **quiet)
+    worker = None
+    out = tmp_path / "out"
+    outcome: list[BaseException | fleet.FleetSummary] = []
+
+    def run() -> None:
+        try:
+            outcome.append(fleet.run([folder], out, fleet.FleetOptions(scheduler=address,
+                                                                       identification=QUICK.identification)))
+        except BaseException as err:  # noqa: BLE001 — the test reads it
+            outcome.append(err)
+
+    runner = threading.Thread(target=run, daemon=True)
+    try:
+        _wait_for_port(port, scheduler)
+        worker = subprocess.Popen([sys.executable, "-m", "dask", "worker", address, "--host", "127.0.0.1",
+                                   "--no-nanny", "--nthreads", "1", "--no-dashboard",
+                                   "--dashboard-address", "127.0.0.1:0"], **quiet)
+        with Client(address, timeout="60s") as client:
+            client.wait_for_workers(1, timeout=90)
+            runner.start()
+            deadline = time.monotonic() + 120
+            while not any(client.processing().values()) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            os.killpg(worker.pid, 9)  # mid-identification
+        runner.join(timeout=60)
+        waits = runner.is_alive()  # before the scheduler goes: its end would end the wait too
+    finally:
+        for proc in (worker, scheduler):
+            if proc is not None:
+                _stop(proc)
+    assert not waits, "the run still waits on a cluster with no workers after a minute"
+    [err] = outcome
+    assert isinstance(err, fleet.ClusterError), err
+    found = re.search(r"no workers for \d+ s, with ([123]) log\(s\) waiting; the logs identified so far are kept",
+                      str(err))
+    assert found, str(err)
+    rows = pq.read_table(out / "fleet.parquet").to_pylist() if (out / "fleet.parquet").exists() else []
+    assert len(rows) == 3 - int(found.group(1))  # nothing that finished is lost
+    assert all(r["status"] == "ok" for r in rows)
 
 
 def test_bad_fleet_input_is_one_line_and_a_nonzero_exit(tmp_path: Path) -> None:

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
+import time
 import uuid
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -37,6 +39,11 @@ Task = Callable[..., dict[str, Any]]
 CONNECT_TIMEOUT_S = 10.0
 #: How long to wait for the scheduler to have a worker [s] (a cluster's workers may be starting).
 WORKERS_TIMEOUT_S = 30.0
+#: How long logs may wait on a cluster that has lost every worker before the run stops [s] (Dask
+#: would keep them waiting for ever; a local cluster's nanny restarts a dead worker within seconds).
+NO_WORKERS_S = 60.0
+#: How often a run with nothing finished asks the scheduler for its workers [s].
+WORKERS_POLL_S = 2.0
 
 
 class ClusterError(CommissionError):
@@ -116,15 +123,46 @@ def identify_all(client: Any, logs: Sequence[tuple[str, str]], options: Mapping[
     submitted = client.map(task, [s for s, _ in logs], [d for _, d in logs], key=keys, options=dict(options),
                            pure=False, retries=1)
     futures = dict(zip(submitted, logs))
-    for future in as_completed(futures):
-        source, digest = futures[future]
-        try:
-            row = future.result()
-        except Exception as err:  # noqa: BLE001 — any failure of one task (KilledWorker too) is that log's row
-            row = crashed_row(source, digest, _crash_text(err))
-        finally:
-            future.release()
-        on_row(row)
+    finished = as_completed(futures)
+    watch = _WorkerWatch(client)
+    while not finished.is_empty():
+        batch = finished.next_batch(block=False)
+        if not batch:
+            watch.check(len(futures))
+            time.sleep(0.05)
+            continue
+        for future in batch:
+            source, digest = futures.pop(future)
+            try:
+                row = future.result()
+            except Exception as err:  # noqa: BLE001 — any failure of one task (KilledWorker too) is that log's row
+                row = crashed_row(source, digest, _crash_text(err))
+            finally:
+                future.release()
+            on_row(row)
+
+
+class _WorkerWatch:
+    """Raises ClusterError once the scheduler has had no worker for ``NO_WORKERS_S``."""
+
+    def __init__(self, client: Any) -> None:
+        self.client = client
+        self.asked = -math.inf
+        self.alone_since: float | None = None
+
+    def check(self, waiting: int) -> None:
+        now = time.monotonic()
+        if now - self.asked < WORKERS_POLL_S:
+            return
+        self.asked = now
+        if self.client.nthreads():
+            self.alone_since = None
+            return
+        self.alone_since = self.alone_since if self.alone_since is not None else now
+        if now - self.alone_since >= NO_WORKERS_S:
+            raise ClusterError(f"the Dask cluster has had no workers for {now - self.alone_since:.0f} s, with "
+                               f"{waiting} log(s) waiting; the logs identified so far are kept: start workers "
+                               "and run again to identify the rest")
 
 
 def _crash_text(err: BaseException) -> str:
