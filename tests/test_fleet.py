@@ -9,6 +9,7 @@ give a model (a cut MCAP file, a file that is not CSV, a record too short to ide
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import math
 import os
@@ -19,6 +20,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
@@ -205,13 +207,13 @@ def _stop(proc: subprocess.Popen) -> None:
             proc.wait()
 
 
-def test_on_an_existing_scheduler_a_rerun_identifies_only_new_logs(local_run, logs: Path, tmp_path: Path) -> None:
+@contextlib.contextmanager
+def _dask_cluster(*worker_options: str) -> Iterator[tuple[str, subprocess.Popen, set[str]]]:
+    """``dask scheduler`` and one ``dask worker WORKER_OPTIONS`` (one thread) on loopback, each in a process
+    group of its own; yields the scheduler's address, the worker's process and the workers the scheduler
+    knows. Both are stopped on exit."""
     from distributed import Client
 
-    out = tmp_path / "out"
-    shutil.copytree(local_run.out, out)
-    before = _rows(out, logs)
-    new = _simulate(tmp_path / "fleet-logs" / "later" / "ax1-jul.mcap", 0.70, K=20.0, serial="AX-1", months=6, seed=9)
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True}
@@ -221,16 +223,25 @@ def test_on_an_existing_scheduler_a_rerun_identifies_only_new_logs(local_run, lo
     try:
         _wait_for_port(port, scheduler)
         worker = subprocess.Popen([sys.executable, "-m", "dask", "worker", address, "--host", "127.0.0.1",
-                                   "--nworkers", "1", "--nthreads", "1", "--no-dashboard",
+                                   *worker_options, "--nthreads", "1", "--no-dashboard",
                                    "--dashboard-address", "127.0.0.1:0"], **quiet)
         with Client(address, timeout="60s") as client:
             client.wait_for_workers(1, timeout=90)
             workers = set(client.scheduler_info()["workers"])
-        run = run_cli("--replay", logs, new.parent, "--config", "quick", "--scheduler", address, "--json", out=out)
+        yield address, worker, workers
     finally:
         for proc in (worker, scheduler):
             if proc is not None:
                 _stop(proc)
+
+
+def test_on_an_existing_scheduler_a_rerun_identifies_only_new_logs(local_run, logs: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    shutil.copytree(local_run.out, out)
+    before = _rows(out, logs)
+    new = _simulate(tmp_path / "fleet-logs" / "later" / "ax1-jul.mcap", 0.70, K=20.0, serial="AX-1", months=6, seed=9)
+    with _dask_cluster("--nworkers", "1") as (address, _, workers):
+        run = run_cli("--replay", logs, new.parent, "--config", "quick", "--scheduler", address, "--json", out=out)
     assert run.code == 0, run.stderr
     summary = run.doc["fleet"]
     assert (summary["identified"], summary["skipped"]) == (1, len(GOOD) + len(BAD))
@@ -292,41 +303,25 @@ def test_a_cluster_that_loses_every_worker_ends_the_run_and_keeps_what_came_in(t
     folder = tmp_path / "logs"
     for i in range(3):
         _simulate(folder / f"ax-{i}.mcap", 0.35, serial=f"D-{i}", seed=31 + i)
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True}
-    scheduler = subprocess.Popen([sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                                  "--no-dashboard", "--dashboard-address", "127.0.0.1:0"], **quiet)
-    worker = None
     out = tmp_path / "out"
     outcome: list[BaseException | fleet.FleetSummary] = []
 
-    def run() -> None:
+    def run(address: str) -> None:
         try:
             outcome.append(fleet.run([folder], out, fleet.FleetOptions(scheduler=address,
                                                                        identification=QUICK.identification)))
         except BaseException as err:  # noqa: BLE001 — the test reads it
             outcome.append(err)
 
-    runner = threading.Thread(target=run, daemon=True)
-    try:
-        _wait_for_port(port, scheduler)
-        worker = subprocess.Popen([sys.executable, "-m", "dask", "worker", address, "--host", "127.0.0.1",
-                                   "--no-nanny", "--nthreads", "1", "--no-dashboard",
-                                   "--dashboard-address", "127.0.0.1:0"], **quiet)
-        with Client(address, timeout="60s") as client:
-            client.wait_for_workers(1, timeout=90)
-            runner.start()
-            deadline = time.monotonic() + 120
-            while not any(client.processing().values()) and time.monotonic() < deadline:
-                time.sleep(0.05)
-            os.killpg(worker.pid, 9)  # mid-identification
+    with _dask_cluster("--no-nanny") as (address, worker, _), Client(address, timeout="60s") as client:
+        runner = threading.Thread(target=run, args=(address,), daemon=True)
+        runner.start()
+        deadline = time.monotonic() + 120
+        while not any(client.processing().values()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        os.killpg(worker.pid, 9)  # mid-identification
         runner.join(timeout=60)
         waits = runner.is_alive()  # before the scheduler goes: its end would end the wait too
-    finally:
-        for proc in (worker, scheduler):
-            if proc is not None:
-                _stop(proc)
     assert not waits, "the run still waits on a cluster with no workers after a minute"
     [err] = outcome
     assert isinstance(err, fleet.ClusterError), err
