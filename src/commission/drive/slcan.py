@@ -166,9 +166,11 @@ class CheckedSlcanBus(slcanBus):
             super().send(msg, WRITE_TIMEOUT_S if timeout is None else timeout)
         except can.CanOperationError as err:
             cause = err.__cause__ or err
-            why = ("it took nothing for {:g} s: the adapter hangs or its USB link stalled".format(
-                self.serialPortOrig.write_timeout) if isinstance(cause, serial.SerialTimeoutException)
-                else "cable pulled or adapter unplugged?")
+            if isinstance(cause, serial.SerialTimeoutException):
+                why = (f"it took nothing for {self.serialPortOrig.write_timeout:g} s: the adapter hangs or its USB "
+                       "link stalled")
+            else:
+                why = "cable pulled or adapter unplugged?"
             self.failure = can.CanOperationError(f"slcan adapter on {self.port_name}: cannot write ({cause}): {why}")
             raise self.failure from err
 

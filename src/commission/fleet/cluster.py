@@ -158,8 +158,9 @@ class _WorkerWatch:
         if self.client.nthreads():
             self.alone_since = None
             return
-        self.alone_since = self.alone_since if self.alone_since is not None else now
-        if now - self.alone_since >= NO_WORKERS_S:
+        if self.alone_since is None:
+            self.alone_since = now
+        elif now - self.alone_since >= NO_WORKERS_S:
             raise ClusterError(f"the Dask cluster has had no workers for {now - self.alone_since:.0f} s, with "
                                f"{waiting} log(s) waiting; the logs identified so far are kept: start workers "
                                "and run again to identify the rest")
