@@ -359,7 +359,11 @@ class CanopenSlave:
         self.bus_load = float(bus_load)
         self.bitrate_bps = int(bitrate_bps)
         self.identity = identity
-        self._loss_rng = np.random.default_rng(seed)
+        # one stream of draws per direction: the receive thread (RPDOs) and the clock (SYNC, TPDOs) draw
+        # concurrently, and one shared generator would make the loss pattern depend on thread timing
+        self._loss_rng = {incoming: np.random.default_rng(s) for incoming, s in
+                          zip((True, False), np.random.SeedSequence(seed).spawn(2))}
+        self._loss_lock = threading.Lock()
         # the drive's own clock (SYNC producer)
         self._clock: threading.Thread | None = None
         self._clock_stop = threading.Event()
@@ -745,7 +749,7 @@ class CanopenSlave:
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         layout = self._rpdos.get(can_id)
-        if not layout or self.node.sdo.muted or self._lost():
+        if not layout or self.node.sdo.muted or self._lost(incoming=True):
             return
         values = layout[0][2].unpack_from(bytes(data).ljust(layout[0][2].size, b"\0"))
         with self._lock:
@@ -753,11 +757,14 @@ class CanopenSlave:
                 self._pending[(index, subindex)] = value
             self._rpdo_fresh = True
 
-    def _lost(self) -> bool:
-        """One draw of ``frame_loss``: True if this frame is lost on the bus."""
-        if self.frame_loss <= 0 or self._loss_rng.random() >= self.frame_loss:
+    def _lost(self, incoming: bool = False) -> bool:
+        """One draw of ``frame_loss`` from the direction's own stream: True if this frame is lost on the bus."""
+        if self.frame_loss <= 0:
             return False
-        self.frames_dropped += 1
+        with self._loss_lock:
+            if self._loss_rng[incoming].random() >= self.frame_loss:
+                return False
+            self.frames_dropped += 1
         return True
 
     def _cycle_ticks(self) -> int:
