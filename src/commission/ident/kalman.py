@@ -223,8 +223,9 @@ def _twist_at(V: NDArray[np.complex128], lam: NDArray[np.complex128], z0: NDArra
     acc = 0.0
     for i in range(lam.size):
         a = lam[i] * t
-        ph = t * (1.0 + 0.5 * a) if abs(a) < 1e-8 else (np.exp(a) - 1.0) / lam[i]
-        acc += (V[2, i] * (np.exp(a) * z0[i] + ph * c[i])).real
+        ea = np.exp(a)
+        ph = t * (1.0 + 0.5 * a) if abs(a) < 1e-8 else (ea - 1.0) / lam[i]
+        acc += (V[2, i] * (ea * z0[i] + ph * c[i])).real
     return acc
 
 
@@ -278,6 +279,8 @@ def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, 
     c = np.empty(n, dtype=np.complex128)
     ek = np.empty(n, dtype=np.complex128)
     phk = np.empty(n, dtype=np.complex128)
+    Ve = np.empty((n, n), dtype=np.complex128)
+    bu = np.empty(n)
     W = np.empty((n, n))
     W2 = np.empty((n, n))
     for i in range(n):
@@ -287,15 +290,17 @@ def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, 
         reg = _region(x[2], eps)
         m = 0 if reg == 0 else 1
         u[1] = reg * eps
+        for j in range(n):
+            acc = 0.0
+            for q in range(4):
+                acc += Bc[m, j, q] * u[q]
+            bu[j] = acc
         for i in range(n):
             a0 = 0j
             a1 = 0j
             for j in range(n):
                 a0 += Vi[m, i, j] * x[j]
-                bu = 0.0
-                for q in range(4):
-                    bu += Bc[m, j, q] * u[q]
-                a1 += Vi[m, i, j] * bu
+                a1 += Vi[m, i, j] * bu[j]
             z0[i] = a0
             c[i] = a1
         tc = -1.0
@@ -320,12 +325,15 @@ def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, 
             for k in range(n):
                 acc += (V[m, i, k] * (ek[k] * z0[k] + phk[k] * c[k])).real
             x[i] = acc
-        # M ← Φ_m(t)·M, Φ_m(t) = V·e^{Λt}·V⁻¹
+        # M ← Φ_m(t)·M, Φ_m(t) = V·e^{Λt}·V⁻¹ (V·e^{Λt} once: the products associate as written)
+        for i in range(n):
+            for k in range(n):
+                Ve[i, k] = V[m, i, k] * ek[k]
         for i in range(n):
             for j in range(n):
                 acc = 0.0
                 for k in range(n):
-                    acc += (V[m, i, k] * ek[k] * Vi[m, k, j]).real
+                    acc += (Ve[i, k] * Vi[m, k, j]).real
                 W[i, j] = acc
         _product(W, M, W2)
         M[:, :] = W2
