@@ -253,6 +253,22 @@ def _crossing(V: NDArray[np.complex128], lam: NDArray[np.complex128], z0: NDArra
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _flow(V: NDArray[np.complex128], ek: NDArray[np.complex128], Vi: NDArray[np.complex128],
+          Ve: NDArray[np.complex128], out: NDArray[np.float64]) -> None:
+    """out ← Φ(t) = Re(V·e^{Λt}·V⁻¹), ``ek`` = e^{λt} (Ve: scratch; the products associate as written)."""
+    n = out.shape[0]
+    for i in range(n):
+        for k in range(n):
+            Ve[i, k] = V[i, k] * ek[k]
+    for i in range(n):
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += (Ve[i, k] * Vi[k, j]).real
+            out[i, j] = acc
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _product(A: NDArray[np.float64], B: NDArray[np.float64], out: NDArray[np.float64]) -> None:
     """out ← A·B for small square matrices (summed in a fixed order: the same bits on every machine)."""
     n = out.shape[0]
@@ -325,16 +341,8 @@ def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, 
             for k in range(n):
                 acc += (V[m, i, k] * (ek[k] * z0[k] + phk[k] * c[k])).real
             x[i] = acc
-        # M ← Φ_m(t)·M, Φ_m(t) = V·e^{Λt}·V⁻¹ (V·e^{Λt} once: the products associate as written)
-        for i in range(n):
-            for k in range(n):
-                Ve[i, k] = V[m, i, k] * ek[k]
-        for i in range(n):
-            for j in range(n):
-                acc = 0.0
-                for k in range(n):
-                    acc += (Ve[i, k] * Vi[m, k, j]).real
-                W[i, j] = acc
+        # M ← Φ_m(t)·M
+        _flow(V[m], ek, Vi[m], Ve, W)
         _product(W, M, W2)
         M[:, :] = W2
         if tc < 0:
