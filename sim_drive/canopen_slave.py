@@ -380,8 +380,10 @@ class CanopenSlave:
         self._consumer: tuple[int, float] | None = None  # (host node id, timeout s)
         self._host_last: float | None = None
         self._watchdog: threading.Thread | None = None
-        #: drive tick (1 / sample rate) at which each SYNC latched its TPDO values, for tests
+        #: drive tick (1 / sample rate) at which each SYNC latched its TPDO values, and the torque [N·m]
+        #: applied from it on (what its TPDO's 0x6077 says, lost or not), for tests
         self.sync_ticks: list[int] = []
+        self.applied_nm: list[float] = []
         self._install_callbacks()
         self._set_constants()
 
@@ -746,6 +748,7 @@ class CanopenSlave:
             self._first_sync = None
             self._ticks_done = 0
             self.sync_ticks = []
+            self.applied_nm = []
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         layout = self._rpdos.get(can_id)
@@ -823,6 +826,7 @@ class CanopenSlave:
             self._applied_torque_nm = new_torque if dev.state is State.OPERATION_ENABLED else 0.0
         else:
             self._applied_torque_nm = 0.0
+        self.applied_nm.append(self._applied_torque_nm)
         self._check_fault()
         self._sync_count += 1
         frames = []
@@ -875,6 +879,7 @@ class CanopenSlave:
             self._sync_count = 0
             self._ticks_done = 0
             self.sync_ticks = []
+            self.applied_nm = []
         period = ticks / self.device.sample_rate_hz
         counter = 0
         due = time.perf_counter()

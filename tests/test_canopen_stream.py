@@ -53,6 +53,7 @@ def test_lost_frames_leave_marked_samples_and_the_rest_exact(tmp_path, cpu_hog):
     with streamed(plant={"seed": 2}, link={"frame_loss": 0.02, "seed": 5}) as drive:
         Sequencer(short_config(), drive, tmp_path).run()
         report, dropped = drive.stream_report, drive.simulator.frames_dropped
+        applied = np.asarray(drive.simulator.applied_nm)
     rec = read_recording(tmp_path / "run.mcap")
     lost = rec.lost_mask
     assert len(rec) >= 2000 and rec.is_uniform and dropped > 0  # a lost TPDO also pauses the excitation
@@ -67,6 +68,18 @@ def test_lost_frames_leave_marked_samples_and_the_rest_exact(tmp_path, cpu_hog):
     # lost positions are interpolated: within a few counts of the neighbours' trend, never a jump
     jumps = np.abs(np.diff(rec.motor_position))
     assert jumps.max() < 60.0 / 2000 * 1.5  # below the peak speed's step (well under 60 rad/s)
+    # the drive's own torque per cycle: the record is the drive's cycle c0 + 1 + j; c0 is where every
+    # received sample's torque is the drive's (one offset fits a chirp)
+    def same(o: int) -> np.ndarray:  # (the record's per mille × rated, the drive's rated × per mille)
+        return np.isclose(rec.torque_ref, applied[o:o + len(rec)], rtol=0, atol=1e-9)
+
+    fits = [o for o in range(applied.size - len(rec) + 1) if same(o)[~lost].all()]
+    assert len(fits) == 1
+    # a lost cycle's torque is the setpoint the drive got for it, or held when the host sent none (its
+    # TPDO lost, or its SYNC: the answer to the next TPDO acts a cycle later): wrong only where that
+    # RPDO was lost or late too, a few of the lost cycles (38 % when the answers were not realigned)
+    wrong = ~same(fits[0])[lost]
+    assert wrong.sum() <= 0.1 * lost.sum()
 
 
 def _hand_fed(targets: list[int], period_s: float, cycles: int, lost: dict[int, str] | None = None,
@@ -159,13 +172,17 @@ def test_the_band_is_checked_on_the_waveform_actually_played():
 
 
 def test_streamed_identification_matches_the_plant_beside_a_cpu_hog(tmp_path, cpu_hog):
-    """The paper's 10 s experiment streamed at 2 kHz on a busy host: the identified axis is the plant
-    within the accuracy the direct run reaches (ε ±0.02°, J_m, J_l, K ±2 %)."""
+    """The paper's 10 s experiment streamed at 2 kHz on a busy host that loses 1 % of the bus's frames:
+    the identified axis is the plant within the accuracy the direct run reaches (ε ±0.02°, J_m, J_l, K
+    ±2 %), and not flagged: the lost cycles' torque is the one the drive applied (with a lost SYNC's
+    answers recorded a cycle early, the model needed a torque disturbance of 4.7 % and was flagged)."""
     hybrid = pytest.importorskip("commission.ident.hybrid")
-    with streamed(plant={"seed": 4}) as drive:
+    with streamed(plant={"seed": 4}, link={"frame_loss": 0.01, "seed": 3}) as drive:
         outcome = Sequencer(Config(), drive, tmp_path, identify=hybrid.identify, tune=False).run()
     result, truth = outcome.identification, PlantParameters()
     assert len(outcome.recording) >= 20_000  # 20000 setpoints, and the cycles a late host paused them
+    assert outcome.recording.lost_mask.sum() > 100
+    assert not result.fit.approximate, result.fit.reasons
     assert math.degrees(result.epsilon_rad) == pytest.approx(truth.epsilon_deg, abs=0.02)
     for name in ("J_m", "J_l", "K"):
         assert getattr(result.parameters, name) == pytest.approx(getattr(truth, name), rel=0.02), name

@@ -776,7 +776,7 @@ class CanopenDrive(Drive):
             return None
         rate = budget.rate_hz
         torque, velocity, position, lost = record_signals(
-            rec.position, rec.torque, rec.sent[1 : n + 1], received, rate, self.rated_torque_nm, self.motor_increments)
+            rec.position, rec.torque, rec.meant()[1 : n + 1], received, rate, self.rated_torque_nm, self.motor_increments)
         report = self.stream_report or streamer.report(budget)
         metadata = {
             "link": f"canopen {self.interface}:{self.port} node {self.node_id}",

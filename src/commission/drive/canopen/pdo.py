@@ -47,6 +47,8 @@ STREAM_FRAMES: tuple[int, ...] = (1, 2, 8)
 SYNC_COUNTER_OVERFLOW = 240
 #: bits per byte on a UART line (8N1)
 LINE_BITS_PER_BYTE = 10
+#: ``CycleRecord.sent`` of a cycle the host sent no setpoint for
+NOT_SENT = np.iinfo(np.int64).min
 #: a TPDO that waited longer than this many cycles is stale: the drive's next SYNC has passed
 STALE_AFTER = 0.75
 #: pauses may let the setpoints fall this far behind the drive's clock [s]; beyond, they skip ahead
@@ -249,7 +251,7 @@ class CycleRecord:
     received: NDArray[np.bool_]
     ambiguous: NDArray[np.bool_]
     sent: NDArray[np.int64]
-    """the setpoint [per mille] the host sent last before the cycle's SYNC (what it meant the drive to apply)."""
+    """the setpoint [per mille] the host sent for the cycle (``NOT_SENT`` where it sent none: see :meth:`meant`)."""
     sync_time: NDArray[np.float64]
     """time stamp of the cycle's SYNC (time.time clock); NaN if it did not arrive."""
     latency: NDArray[np.float64]
@@ -258,7 +260,15 @@ class CycleRecord:
     @classmethod
     def empty(cls, n: int) -> CycleRecord:
         return cls(np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, bool),
-                   np.zeros(n, bool), np.zeros(n, np.int64), np.full(n, np.nan), np.full(n, np.nan))
+                   np.zeros(n, bool), np.full(n, NOT_SENT, np.int64), np.full(n, np.nan), np.full(n, np.nan))
+
+    def meant(self) -> NDArray[np.int64]:
+        """Per cycle, the setpoint [per mille] the drive applies when every RPDO arrived in time: the one
+        sent for the cycle, else the last one sent before (a drive holds it), 0 before the first."""
+        sent = self.sent
+        has = sent != NOT_SENT
+        last = np.maximum.accumulate(np.where(has, np.arange(sent.size), -1))
+        return np.where(last >= 0, sent[np.maximum(last, 0)], 0)
 
 
 class SyncedStream:
@@ -304,6 +314,7 @@ class SyncedStream:
         self._cycle = -1
         self._last_raw: int | None = None
         self._tpdo_for: int | None = None
+        self._unheard = 0  # SYNCs lost since the last one heard, as the TPDOs heard after it show
         self._next = 0
         self._last_sent: int | None = None
         self._handled_at = 0.0
@@ -339,6 +350,7 @@ class SyncedStream:
             cycle = self._cycle + 1
         self._cycle = cycle
         self._tpdo_for = None
+        self._unheard = 0
         self.last_sync_monotonic = time.monotonic()
         if not self._armed:
             return
@@ -371,6 +383,8 @@ class SyncedStream:
             return
         if self._tpdo_for == self._cycle:  # two TPDOs for one SYNC: a SYNC was lost in between
             rec.ambiguous[i] = True
+            # this TPDO is the lost SYNC's cycle's, so the answer acts a cycle later than the last one
+            self._unheard += 1
         else:
             self._tpdo_for = self._cycle
             rec.position[i] = position
@@ -413,7 +427,8 @@ class SyncedStream:
         self._send(self.rpdo_cob, self._pack(value))
         self._next = k + 1
         self._last_sent = value
-        rec.sent[i + 1] = value
+        if i + 1 + self._unheard < rec.sent.size:
+            rec.sent[i + 1 + self._unheard] = value
         sync_at = rec.sync_time[i]
         rec.latency[i] = time.time() - sync_at if np.isfinite(sync_at) else np.nan
         self.samples_done = k + 1
@@ -512,8 +527,9 @@ def record_signals(
 
     ``counts``, ``applied_permille`` and ``received`` have one entry per cycle, index 0 being the cycle
     before the first sample (it gives the first velocity); ``intended_permille`` has one per sample: the
-    setpoint the host sent for it. Lost cycles get their position from a cubic spline through the
-    received ones and the torque the host meant (the drive's is unknown there).
+    setpoint the drive applies there if its RPDOs arrived in time (:meth:`CycleRecord.meant`). Lost cycles
+    get their position from a cubic spline through the received ones and that torque (the drive's own
+    report of it is lost; wrong only where the setpoint's RPDO was lost or late too).
 
     :returns: torque [N·m], motor velocity [rad/s] (position difference over the cycle, as the
         identifier models a drive's velocity), motor position [rad], and the mask of lost samples.
