@@ -75,11 +75,15 @@ def test_lost_frames_leave_marked_samples_and_the_rest_exact(tmp_path, cpu_hog):
 
     fits = [o for o in range(applied.size - len(rec) + 1) if same(o)[~lost].all()]
     assert len(fits) == 1
-    # a lost cycle's torque is the setpoint the drive got for it, or held when the host sent none (its
-    # TPDO lost, or its SYNC: the answer to the next TPDO acts a cycle later): wrong only where that
-    # RPDO was lost or late too, a few of the lost cycles (38 % when the answers were not realigned)
-    wrong = ~same(fits[0])[lost]
-    assert wrong.sum() <= 0.1 * lost.sum()
+    # a lost cycle's torque is the setpoint the host sent for it, or the one held when it sent none (its
+    # TPDO lost, or its SYNC: the answer to the next TPDO acts a cycle later). It is wrong where that
+    # setpoint came late or was lost too and the drive held the one before, which a busy host makes
+    # common; rarely otherwise (a third of the lost cycles had the next cycle's torque before the
+    # answers were realigned)
+    drive = applied[fits[0]:fits[0] + len(rec)]
+    held = np.concatenate(([False], drive[1:] == drive[:-1]))
+    wrong = ~same(fits[0]) & lost
+    assert (wrong & ~held).sum() <= 0.05 * lost.sum()
 
 
 def _hand_fed(targets: list[int], period_s: float, cycles: int, lost: dict[int, str] | None = None,
