@@ -60,6 +60,10 @@ class KalmanProblem:
     """Standard deviation of each encoder's quantization, step/√12 [rad], shape (outputs,)."""
     measured: NDArray[np.bool_]
     """False at samples a streamed link lost (interpolated in the record: no evidence), shape (N,)."""
+    torque_variance: NDArray[np.float64]
+    """Variance of the torque acting over [k·Ts, (k+1)·Ts) [N·m²], shape (N,): 0 where the drive reported
+    it; where the link lost its cycle, the spread of the torques the drive may have applied (the one
+    the host meant, or a neighbour's: a setpoint late or lost is held)."""
     torque_rms_nm: float
     """RMS of τ_ref [N·m]: the scale of the torque disturbance."""
     velocity_scale_rad_s: float
@@ -96,9 +100,25 @@ def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.f
     if not 0 <= d < tau.size:
         raise ValueError(f"delay of {delay_samples} samples on a record of {tau.size}")
     acting = np.concatenate((np.zeros(d), tau[:tau.size - d])) if d else tau
+    variance = _lost_torque_variance(tau, ~measured)
+    if d:
+        variance = np.concatenate((np.zeros(d), variance[:tau.size - d]))
     return KalmanProblem(fs, acting, y, None if load_position is None else np.ascontiguousarray(load_position, dtype=np.float64),
                          np.concatenate((np.tanh(speed / velocity_scale_rad_s), [0.0])), noise,
-                         np.ascontiguousarray(measured), float(np.sqrt(np.mean(tau * tau))), velocity_scale_rad_s, d)
+                         np.ascontiguousarray(measured), variance, float(np.sqrt(np.mean(tau * tau))),
+                         velocity_scale_rad_s, d)
+
+
+def _lost_torque_variance(tau: NDArray[np.float64], lost: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Per sample, the variance of the torque the drive applied [N·m²]: 0 where the record has it; at a lost
+    cycle the mean square of its differences to its neighbours (which torque a busy host's late or lost
+    setpoint left acting there is not known: on an slcan link beside a CPU hog, the meant one half the time)."""
+    var = np.zeros(tau.size)
+    if lost.any() and tau.size > 1:
+        padded = np.concatenate(([tau[0]], tau, [tau[-1]]))
+        var = 0.5 * (np.diff(padded)[:-1] ** 2 + np.diff(padded)[1:] ** 2)
+        var[~lost] = 0.0
+    return np.ascontiguousarray(var)
 
 
 @dataclass(frozen=True, eq=False)
@@ -428,8 +448,8 @@ _SIGMA_WEIGHT = np.array([2.0 / 3.0, 1.0 / 6.0, 1.0 / 6.0])
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.float64], fm: NDArray[np.float64],
-            measured: NDArray[np.bool_], Fcm: float, Fcl: float, eps: float, Ts: float,
+def _filter(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.float64],
+            fm: NDArray[np.float64], measured: NDArray[np.bool_], Fcm: float, Fcl: float, eps: float, Ts: float,
             Phi: NDArray[np.float64], Gam: NDArray[np.float64], PhiH: NDArray[np.float64], GamH: NDArray[np.float64],
             V: NDArray[np.complex128], lam: NDArray[np.complex128], Vi: NDArray[np.complex128],
             Bc: NDArray[np.float64], jump: NDArray[np.float64], Q: NDArray[np.float64], R: NDArray[np.float64],
@@ -467,7 +487,7 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
             events += ev
             for i in range(n):
                 x[i] = xe[i]
-            if steady and m == 1 and not switch and measured[k + 1]:
+            if steady and m == 1 and not switch and measured[k + 1] and tvar[k] == 0.0:
                 # in contact, the covariance has reached its steady state: the stored gains
                 for o in range(nout):
                     innov = y[k + 1] - x[0] if o == 0 else yl[k + 1] - (x[0] - x[2])
@@ -478,11 +498,15 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
                 continue
             # P ← F P Fᵀ + Q: F the interval's mode's Φ, or across a switch the saltated flow's linearization
             _propagate(Msw if switch else Phi[m], P, Q[m], T)
+            if tvar[k] > 0.0:
+                _torque_noise(P, Gam[m], tvar[k])
         else:
             m, ev = _sigma_predict(x, P, tau[k], fm[k], Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, V, lam, Vi, Bc, jump,
                                    Q, u, Msw, xs, xes, Fs, Pc, col, T)
             events += ev
             switch = True  # never a steady sample
+            if tvar[k] > 0.0:
+                _torque_noise(P, Gam[m], tvar[k])
         if not measured[k + 1]:
             steady = False
             for o in range(nout):
@@ -493,6 +517,15 @@ def _filter(tau: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.flo
         # steady once a contact interval leaves the covariance where the last one did (to ~1e-12)
         steady = _settled(P, P_last) and m == 1 and not switch
     return events
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _torque_noise(P: NDArray[np.float64], Gam: NDArray[np.float64], var: float) -> None:
+    """P ← P + var·g·gᵀ: a torque reference of variance ``var`` [N·m²] held over the sample (g: Γ's τ_ref column)."""
+    n = P.shape[0]
+    for i in range(n):
+        for j in range(n):
+            P[i, j] += var * Gam[i, 0] * Gam[j, 0]
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -643,7 +676,7 @@ def innovations(problem: KalmanProblem, params: TwoMassParameters, epsilon_rad: 
     jump[1], jump[3] = -params.D / params.J_m, params.D / params.J_l
     e = np.zeros((pr.motor_position.size - 1, pr.outputs))
     S = np.ones_like(e)
-    events = _filter(pr.torque_ref, pr.motor_position, yl, pr.motor_friction, pr.measured, float(coulomb_motor_nm),
+    events = _filter(pr.torque_ref, pr.torque_variance, pr.motor_position, yl, pr.motor_friction, pr.measured, float(coulomb_motor_nm),
                      float(coulomb_load_nm), float(epsilon_rad), Ts, model.Phi, model.Gam,
                      model.PhiH, model.GamH, model.V, model.lam, model.Vi, model.B, jump, Qm, R, x0, P0, e, S,
                      sigma_points)
