@@ -13,6 +13,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.interpolate import CubicSpline
 
 from commission.config import ExcitationConfig
 from commission.excitation import chirp
@@ -115,20 +116,29 @@ def test_a_load_encoder_adds_its_own_channel_and_a_lost_sample_is_no_evidence() 
 
 
 def test_a_lost_cycles_torque_is_uncertain_not_evidence() -> None:
-    """A streamed record whose lost cycles carry a torque the drive may not have applied (a busy host's
-    late setpoint held, or the next one): 2 % of the samples, marked lost. At the true plant the
-    prediction errors stay the encoder's noise; the same torques unmarked throw the predictor off."""
+    """A streamed record whose lost cycles (5 %, marked) log the setpoint the host meant, where for half
+    of them the drive held the one before (a busy host's late setpoint), and a position rebuilt by a
+    spline. The encoder's step is read from the samples that arrived; at the true plant the prediction
+    errors stay the encoder's noise; the same torques unmarked throw the predictor off."""
     fs = 2000.0
-    tau, r = _record(fs, 6.0, encoder_bits_motor=20)
+    meant = chirp(ExcitationConfig(sample_rate_hz=fs, duration_s=6.0)).samples
     rng = np.random.default_rng(7)
-    lost = np.zeros(tau.size, dtype=bool)
-    lost[rng.choice(np.arange(10, tau.size - 10), tau.size // 50, replace=False)] = True
-    logged = tau.copy()
+    lost = np.zeros(meant.size, dtype=bool)
+    lost[rng.choice(np.arange(10, meant.size - 10), meant.size // 20, replace=False)] = True
+    lost[3] = True  # one at rest, where the spline bends between equal neighbours
     k = np.flatnonzero(lost)
-    logged[k] = np.where(rng.random(k.size) < 0.5, tau[k - 1], tau[k + 1])
-    kw = dict(process_noise_nm=1e-4 * float(np.sqrt(np.mean(tau**2))))
-    marked = innovations(kalman_problem(logged, r.motor_position, fs, lost=lost), REFERENCE_PLANT, math.radians(0.4), **kw)
-    unmarked = innovations(kalman_problem(logged, r.motor_position, fs), REFERENCE_PLANT, math.radians(0.4), **kw)
+    applied = meant.copy()
+    held = k[rng.random(k.size) < 0.5]
+    applied[held] = applied[held - 1]
+    r = Plant(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.4, encoder_bits_motor=20), fs).run_torque(applied)
+    position = r.motor_position.copy()
+    position[k] = CubicSpline(np.flatnonzero(~lost), position[~lost])(k)  # as the streamed backend does
+    step = 2 * math.pi / 2**20
+    assert position_step_rad(position, ~lost) == pytest.approx(step, rel=1e-9)
+    assert position_step_rad(position) < 0.6 * step  # what the interpolated samples suggest
+    kw = dict(process_noise_nm=1e-4 * float(np.sqrt(np.mean(meant**2))))
+    marked = innovations(kalman_problem(meant, position, fs, lost=lost), REFERENCE_PLANT, math.radians(0.4), **kw)
+    unmarked = innovations(kalman_problem(meant, position, fs), REFERENCE_PLANT, math.radians(0.4), **kw)
     assert marked is not None and unmarked is not None
     assert 0.7 < _rms(marked.normalized) < 1.4
     assert _rms(unmarked.normalized) > 5 * _rms(marked.normalized)

@@ -19,7 +19,8 @@ and holds it when it can), the limit of the smooth sign the plant uses.
 
 Noise model (Ljung, *System Identification*, ch. 4): each encoder measures its position with its
 quantization noise, variance step²/12 (the step read from the record); a white torque disturbance
-of standard deviation ``process_noise_nm`` per sample acts on the motor (a share of it on the load). The
+of standard deviation ``process_noise_nm`` per sample acts on the motor (a share of it on the load), and
+at a sample a streamed link lost, the spread of the torques the drive may have applied there. The
 time-varying Kalman filter (covariance propagated through the sample's mode, so that the load's
 uncertainty grows in the gap and is corrected at the next contact) gives one-step prediction
 errors e_k and their variances S_k: at the true parameters and noise levels e_k/√S_k is white with
@@ -76,9 +77,12 @@ class KalmanProblem:
         return 1 if self.load_position is None else 2
 
 
-def position_step_rad(position: NDArray[np.float64]) -> float:
-    """An encoder's step [rad]: the smallest position change in its record (0: it never moved)."""
+def position_step_rad(position: NDArray[np.float64], measured: NDArray[np.bool_] | None = None) -> float:
+    """An encoder's step [rad]: the smallest position change in its record (0: it never moved), between
+    samples both ``measured`` (an interpolated one a link lost may sit anywhere between two steps)."""
     d = np.abs(np.diff(np.asarray(position, dtype=np.float64)))
+    if measured is not None:
+        d = d[measured[1:] & measured[:-1]]
     d = d[d > 0]
     return float(d.min()) if d.size else 0.0
 
@@ -91,10 +95,11 @@ def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.f
     fs = float(sample_rate_hz)
     y = np.ascontiguousarray(motor_position, dtype=np.float64)
     speed = np.diff(y) * fs
-    steps = [position_step_rad(y)] + ([position_step_rad(load_position)] if load_position is not None else [])
+    measured = np.ones(y.size, dtype=np.bool_) if lost is None else ~np.asarray(lost, dtype=np.bool_)
+    steps = [position_step_rad(y, measured)] + ([position_step_rad(load_position, measured)]
+                                                if load_position is not None else [])
     # a record that never moves by one step has no quantization to speak of: a floor far below any encoder's
     noise = np.array([max(s, 1e-9) / math.sqrt(12.0) for s in steps])
-    measured = np.ones(y.size, dtype=np.bool_) if lost is None else ~np.asarray(lost, dtype=np.bool_)
     tau = np.ascontiguousarray(torque_ref, dtype=np.float64)
     d = int(delay_samples)
     if not 0 <= d < tau.size:

@@ -244,10 +244,12 @@ def quantization_floor_nm(step_rad: float, J_m: float, sample_rate_hz: float, cu
 
 
 def position_step_rad(rec: Recording) -> float:
-    """The motor encoder's step [rad]: the smallest position change in the record (0: none)."""
+    """The motor encoder's step [rad]: the smallest position change in the record between samples the link
+    did not lose (0: none)."""
     from .kalman import position_step_rad as step_of
 
-    return step_of(motor_position_samples(rec.motor_position, rec.motor_velocity, rec.sample_rate_hz))
+    return step_of(motor_position_samples(rec.motor_position, rec.motor_velocity, rec.sample_rate_hz),
+                   ~rec.lost_mask)
 
 
 def residual_cutoff(rec: Recording, start: TwoMassParameters, band_high_hz: float, configured_hz: float,
