@@ -27,7 +27,7 @@ stream figures (lost cycles, late setpoints, host response p99), and the wall ti
    gives (setpoints held per cycle, position per cycle), both against the plant's true parameters.
 
 Run: python bench/bench_streamed.py [--runs 20] [--slcan-runs 5] [--no-hog] [--tune] [--robustness-only]
-     [--plants-only] [--bus-only] [--seeds 3]
+     [--plants-only] [--cycles-only] [--bus-only] [--seeds 3] [--frame-loss P]
 """
 
 from __future__ import annotations
@@ -126,7 +126,8 @@ def series(label: str, runs: int, args_for_run, ref: dict[str, float], tmp: Path
     print(f"\n{label}: {runs} runs{' beside a CPU hog' if hog else ''}")
     devs, walls, ok = [], [], 0
     for i in range(runs):
-        sim = SlcanDrive(sim_extra or []) if sim_extra is not None else None
+        # (a lossy link's losses drawn from a seed of their own per run)
+        sim = SlcanDrive([*sim_extra, "--seed", str(i + 1)] if sim_extra else []) if sim_extra is not None else None
         h = Hog(hog)
         try:
             code, doc, err, wall = commission(args_for_run(sim), tmp / f"{label.split()[0]}-{i}", tune)
@@ -170,7 +171,10 @@ def robustness() -> None:
     cases = [("none", 0.0, 0.0, 1), ("30 % of setpoints late", 0.3, 0.0, 1), ("70 % late", 0.7, 0.0, 1),
              ("93 % late", 0.93, 0.0, 1), ("1 % cycles lost, single", 0.0, 0.01, 1),
              ("5 % cycles lost, single", 0.0, 0.05, 1), ("1 % lost in gaps of 5", 0.0, 0.01, 5),
-             ("1 % lost in gaps of 20", 0.0, 0.01, 20)]
+             ("1 % lost in gaps of 20", 0.0, 0.01, 20),
+             # a busy host: a lost cycle's setpoint may have come late too, and the record cannot say
+             ("30 % late, 1 % lost", 0.3, 0.01, 1), ("30 % late, 5 % lost", 0.3, 0.05, 1),
+             ("50 % late, 10 % lost", 0.5, 0.10, 1)]
     for label, late, lost_frac, burst in cases:
         rec = streamed_record(truth, targets, ticks, rng=np.random.default_rng(1), late=late, lost=lost_frac,
                               burst=burst)
@@ -282,8 +286,14 @@ def main() -> None:
     ap.add_argument("--robustness-only", action="store_true", help="only parts 4 and 5 (no bus, no processes)")
     ap.add_argument("--plants-only", action="store_true", help="only part 5")
     ap.add_argument("--bus-only", action="store_true", help="only parts 1-3 (the runs over a bus)")
+    ap.add_argument("--cycles-only", action="store_true", help="only part 4 (late setpoints, lost cycles)")
+    ap.add_argument("--frame-loss", type=float, default=0.0, metavar="P",
+                    help="the slcan drive loses this share of the bus's frames in the streamed series (seeded per run)")
     ap.add_argument("--seeds", type=int, default=3, help="noise seeds per plant in part 5 (default 3)")
     opt = ap.parse_args()
+    if opt.cycles_only:
+        robustness()
+        return
     if opt.plants_only:
         plants(opt.seeds)
         return
@@ -306,9 +316,10 @@ def main() -> None:
         if opt.slcan_runs:
             series("slcan, no --drive (identity -> sim: trace)", opt.slcan_runs,
                    lambda sim: ["--port", sim.port, "--interface", "slcan"], ref, tmp, opt.tune, hog, [])
-            series("slcan streamed (--drive generic-cia402)", opt.slcan_runs,
-                   lambda sim: ["--port", sim.port, "--interface", "slcan", "--drive", "generic-cia402"],
-                   ref, tmp, opt.tune, hog, [])
+            loss = ["--frame-loss", str(opt.frame_loss)] if opt.frame_loss else []
+            series(f"slcan streamed (--drive generic-cia402{f'; {opt.frame_loss:.0%} of the frames lost' if loss else ''})",
+                   opt.slcan_runs, lambda sim: ["--port", sim.port, "--interface", "slcan", "--drive", "generic-cia402"],
+                   ref, tmp, opt.tune, hog, loss)
     if opt.bus_only:
         return
     robustness()
