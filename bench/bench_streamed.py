@@ -311,8 +311,9 @@ def main() -> None:
         ref = figures(doc)
         print(f"reference (commission --sim, {wall:.0f} s): ε {ref['eps_deg']:.5f}°  J_m {ref['J_m']:.6g}  "
               f"J_l {ref['J_l']:.6g}  K {ref['K']:.6g}")
-        series("canopen streamed (--sim --sim-link canopen --drive generic-cia402)", opt.runs,
-               lambda _: ["--sim", "--sim-link", "canopen", "--drive", "generic-cia402"], ref, tmp, opt.tune, hog)
+        if opt.runs:
+            series("canopen streamed (--sim --sim-link canopen --drive generic-cia402)", opt.runs,
+                   lambda _: ["--sim", "--sim-link", "canopen", "--drive", "generic-cia402"], ref, tmp, opt.tune, hog)
         if opt.slcan_runs:
             series("slcan, no --drive (identity -> sim: trace)", opt.slcan_runs,
                    lambda sim: ["--port", sim.port, "--interface", "slcan"], ref, tmp, opt.tune, hog, [])
