@@ -68,29 +68,24 @@ def test_lost_frames_leave_marked_samples_and_the_rest_exact(tmp_path, cpu_hog):
     # lost positions are interpolated: within a few counts of the neighbours' trend, never a jump
     jumps = np.abs(np.diff(rec.motor_position))
     assert jumps.max() < 60.0 / 2000 * 1.5  # below the peak speed's step (well under 60 rad/s)
-    # the drive's own torque per cycle: the record is the drive's cycle c0 + 1 + j; c0 is where every
-    # received sample's torque is the drive's (one offset fits a chirp)
+    # every received sample's torque is the drive's own for its cycle (one offset, c0 + 1, fits a chirp)
     def same(o: int) -> np.ndarray:  # (the record's per mille × rated, the drive's rated × per mille)
         return np.isclose(rec.torque_ref, applied[o:o + len(rec)], rtol=0, atol=1e-9)
 
     fits = [o for o in range(applied.size - len(rec) + 1) if same(o)[~lost].all()]
     assert len(fits) == 1
-    # a lost cycle's torque is the setpoint the host sent for it, or the one held when it sent none (its
-    # TPDO lost, or its SYNC: the answer to the next TPDO acts a cycle later). It is wrong where that
-    # setpoint came late or was lost too and the drive held the one before, which a busy host makes
-    # common; rarely otherwise (a third of the lost cycles had the next cycle's torque before the
-    # answers were realigned)
-    drive = applied[fits[0]:fits[0] + len(rec)]
-    held = np.concatenate(([False], drive[1:] == drive[:-1]))
-    wrong = ~same(fits[0]) & lost
-    assert (wrong & ~held).sum() <= 0.05 * lost.sum()
+    # (a lost cycle's torque is the setpoint the host meant for it, which a busy host's late answer, held
+    # by the drive, can make wrong: how often depends on the machine's load; the hand-fed test below
+    # checks the meaning on its own, and the streamed identification that the identifier copes)
 
 
 def _hand_fed(targets: list[int], period_s: float, cycles: int, lost: dict[int, str] | None = None,
-              gap_s: float = 0.005) -> tuple[SyncedStream, list[int]]:
+              gap_s: float = 0.005, applied: list[int] | None = None) -> tuple[SyncedStream, list[int]]:
     """The host's side of the stream (SyncedStream) fed a drive's frames by hand on a virtual bus: per cycle
     a SYNC with its counter, then the TPDO latched at it (position 100 × cycle, applied torque 0), either
-    lost where ``lost`` says ("sync", "tpdo", "both"); returns the stream and the setpoints the drive got."""
+    lost where ``lost`` says ("sync", "tpdo", "both"); returns the stream and the setpoints the drive got.
+    ``applied``: filled with the setpoint the drive applies from each cycle's SYNC on (the last one it got
+    before), the drive then waiting for the host's answer to each TPDO the host hears (no late answers)."""
     channel = f"test-hand-fed-{next(_channels)}"
     network = canopen.Network()
     network.connect(interface="virtual", channel=channel)
@@ -99,19 +94,30 @@ def _hand_fed(targets: list[int], period_s: float, cycles: int, lost: dict[int, 
     try:
         stream = SyncedStream(network, rpdo_cob=rpdo, tpdo_cob=tpdo, period_s=period_s, counter_overflow=240)
         stream.arm(np.asarray(targets, dtype=np.int16), max_cycles=2 * cycles)
+        got: list[int] = []
+
+        def received(timeout: float) -> None:
+            while (msg := drive.recv(timeout=timeout)) is not None:
+                if msg.arbitration_id == rpdo:
+                    got.append(SyncedStream.RPDO_STRUCT.unpack(msg.data)[0])
+                    if timeout:
+                        return
+
         for cycle in range(1, cycles + 1):
             what = (lost or {}).get(cycle, "")
+            if applied is not None:
+                received(0.0)
+                applied.append(got[-1] if got else 0)
             if what not in ("sync", "both"):
                 drive.send(can.Message(arbitration_id=SYNC_COB_ID, data=[cycle], is_extended_id=False))
             if what not in ("tpdo", "both"):
                 drive.send(can.Message(arbitration_id=tpdo, data=struct.pack("<ihH", 100 * cycle, 0, 0x1237),
                                        is_extended_id=False))
+                if applied is not None:
+                    received(2.0)  # the host's answer, before the next SYNC
             time.sleep(gap_s)
         time.sleep(0.2)
-        got = []
-        while (msg := drive.recv(timeout=0)) is not None:
-            if msg.arbitration_id == rpdo:
-                got.append(SyncedStream.RPDO_STRUCT.unpack(msg.data)[0])
+        received(0.0)
     finally:
         network.disconnect()
         drive.shutdown()
@@ -133,6 +139,27 @@ def test_no_cycle_is_given_another_cycles_position(lost: dict[int, str]) -> None
     # told apart in any of the three cases, so both are left out (interpolated and marked in the record)
     np.testing.assert_array_equal(rec.position[kept], 100 * (kept + 1))
     assert set((kept + 1).tolist()) == set(range(1, 12)) - {3, 4}
+
+
+@pytest.mark.parametrize("lost, unknowable", [
+    # TPDO 4, heard after SYNC 3 with TPDO 3 lost, passes for TPDO 3: the drive held cycle 3's setpoint
+    # in cycle 4, the host cannot know (the identifier takes a lost cycle's torque as uncertain)
+    ({3: "tpdo", 4: "sync"}, {4}),
+    ({4: "sync"}, set()),  # two TPDOs after SYNC 3: the answer to the second acts in cycle 5
+    ({4: "both"}, set()),  # no answer for cycle 5: the drive holds cycle 4's setpoint
+])
+def test_the_record_means_the_setpoint_the_drive_applied_in_each_cycle(lost: dict[int, str],
+                                                                       unknowable: set[int]) -> None:
+    """Whatever SYNCs and TPDOs are lost, the setpoint the record means for a cycle (the torque of a lost
+    one) is the one the drive applied there, where the host's answers came in time (found on the lossy
+    virtual bus: a lost SYNC's answers were booked a cycle early, a third of the lost cycles' torques off)."""
+    applied: list[int] = []
+    # (a 20 ms cycle, TPDOs 10 ms apart: answers neither stale nor in bursts, so each is the next setpoint)
+    stream, _ = _hand_fed(list(range(1, 11)), 0.02, 11, lost, gap_s=0.01, applied=applied)
+    meant = stream.record.meant()
+    # record index i is the drive's cycle i + 1
+    cycles = [c for c in range(1, 12) if c not in unknowable]
+    assert [int(meant[c - 1]) for c in cycles] == [applied[c - 1] for c in cycles]
 
 
 def test_a_host_late_to_the_end_holds_the_last_setpoint_no_longer_than_the_pause_budget() -> None:

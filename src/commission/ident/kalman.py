@@ -116,8 +116,8 @@ def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.f
 
 def _lost_torque_variance(tau: NDArray[np.float64], lost: NDArray[np.bool_]) -> NDArray[np.float64]:
     """Per sample, the variance of the torque the drive applied [N·m²]: 0 where the record has it; at a lost
-    cycle the mean square of its differences to its neighbours (which torque a busy host's late or lost
-    setpoint left acting there is not known: on an slcan link beside a CPU hog, the meant one half the time)."""
+    cycle the mean square of its differences to its neighbours (whether a busy host's setpoint came in time
+    there, or the drive held the one before, the record cannot say)."""
     var = np.zeros(tau.size)
     if lost.any() and tau.size > 1:
         padded = np.concatenate(([tau[0]], tau, [tau[-1]]))
