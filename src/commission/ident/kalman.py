@@ -104,14 +104,16 @@ def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.f
     d = int(delay_samples)
     if not 0 <= d < tau.size:
         raise ValueError(f"delay of {delay_samples} samples on a record of {tau.size}")
-    acting = np.concatenate((np.zeros(d), tau[:tau.size - d])) if d else tau
-    variance = _lost_torque_variance(tau, ~measured)
-    if d:
-        variance = np.concatenate((np.zeros(d), variance[:tau.size - d]))
-    return KalmanProblem(fs, acting, y, None if load_position is None else np.ascontiguousarray(load_position, dtype=np.float64),
+    return KalmanProblem(fs, _delayed(tau, d), y, None if load_position is None else np.ascontiguousarray(load_position, dtype=np.float64),
                          np.concatenate((np.tanh(speed / velocity_scale_rad_s), [0.0])), noise,
-                         np.ascontiguousarray(measured), variance, float(np.sqrt(np.mean(tau * tau))),
+                         np.ascontiguousarray(measured), _delayed(_lost_torque_variance(tau, ~measured), d),
+                         float(np.sqrt(np.mean(tau * tau))),
                          velocity_scale_rad_s, d)
+
+
+def _delayed(x: NDArray[np.float64], d: int) -> NDArray[np.float64]:
+    """``x`` acting ``d`` samples later, 0 before the record (shape kept)."""
+    return np.concatenate((np.zeros(d), x[:x.size - d])) if d else x
 
 
 def _lost_torque_variance(tau: NDArray[np.float64], lost: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -120,8 +122,8 @@ def _lost_torque_variance(tau: NDArray[np.float64], lost: NDArray[np.bool_]) -> 
     there, or the drive held the one before, the record cannot say)."""
     var = np.zeros(tau.size)
     if lost.any() and tau.size > 1:
-        padded = np.concatenate(([tau[0]], tau, [tau[-1]]))
-        var = 0.5 * (np.diff(padded)[:-1] ** 2 + np.diff(padded)[1:] ** 2)
+        step = np.diff(np.concatenate(([tau[0]], tau, [tau[-1]])))
+        var = 0.5 * (step[:-1] ** 2 + step[1:] ** 2)
         var[~lost] = 0.0
     return np.ascontiguousarray(var)
 
