@@ -275,3 +275,29 @@ def test_a_fit_stopped_at_its_limit_within_a_tenth_of_a_standard_error_of_its_op
         res = stopped(best + offset * sd)
         assert res.status == 0
         assert _within_a_step(res, _covariance(res.jac, res.fun)) is expected, offset
+
+
+def test_a_start_whose_damping_collapsed_to_zero_gives_prediction_errors_and_an_assessment() -> None:
+    # a torque-residual fit on a record no model explains can leave B_m at 1e-16 of the truth: there the gap's
+    # two motor poles coincide and the predictor has no eigen decomposition; a Kalman fit started there stayed
+    # there, and the assessment of its estimate (no prediction errors at all) crashed the identification
+    from commission.ident.assess import assess
+
+    fs = 4000.0
+    true = REFERENCE_PLANT
+    tau, r = _record(fs, 6.0, encoder_bits_motor=19, torque_noise_nm=2e-4, seed=3)
+    kp = kalman_problem(tau, r.motor_position, fs)
+    start = replace(true, J_m=1.05 * true.J_m, K=1.1 * true.K, B_m=1e-16 * true.B_m)
+    assert innovations(kp, start, math.radians(0.4), process_noise_nm=1e-3) is None
+    seed = PemFit(parameters=start, epsilon_rad=math.radians(0.38), coulomb_motor_nm=0.0, coulomb_load_nm=0.0,
+                  lag_s=0.0, terms=ModelTerms(), residual=np.zeros(1), cost_nm=math.nan, names=(),
+                  covariance=np.zeros((0, 0)), n_effective=1.0, evaluations=0, converged=False, message="")
+    fit = kalman_fit(kp, seed, epsilon_max_rad=math.radians(2.0), threads=2, max_nfev=30)
+    assert fit.innovations is not None and fit.parameters.B_m > 0.0
+    q = assess(fit, torque_rms_nm=_rms(tau), sample_rate_hz=fs)
+    # from there the estimate is flagged, or right: never silently wrong
+    within = all(getattr(fit.parameters, n) == pytest.approx(getattr(true, n), rel=0.02) for n in ("J_m", "J_l", "K"))
+    assert q.approximate or (within and math.degrees(fit.epsilon_rad) == pytest.approx(0.4, abs=0.01))
+    # an estimate with no prediction errors is reported as undetermined and flagged, never an error
+    q = assess(replace(fit, innovations=None), torque_rms_nm=_rms(tau), sample_rate_hz=fs)
+    assert q.approximate and not q.determined and q.model_error and "cannot be evaluated" in q.reasons[0]

@@ -123,7 +123,8 @@ DISTURBANCE_MISFIT = 0.04
 def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float) -> FitQuality:
     """The quality of the estimate (:func:`commission.ident.estimator.kalman_fit`; see the module docstring)."""
     inn = fit.innovations
-    assert inn is not None
+    if inn is None:
+        return _unevaluated(fit, torque_rms_nm, sample_rate_hz)
     nu = inn.normalized[:, 0]
     level = inn.rms
     flat, stationary = whiteness(nu, sample_rate_hz)
@@ -160,3 +161,15 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float) -> FitQu
                       observer_bandwidth_hz=0.0, effective_samples=fit.n_effective, converged=fit.converged,
                       interval_scale=scale, model_error=bool(misfit or not determined), determined=determined,
                       innovation_rms=level, process_noise_ratio=disturbance)
+
+
+def _unevaluated(fit: PemFit, torque_rms_nm: float, sample_rate_hz: float) -> FitQuality:
+    """The quality of an estimate where the predictor has no prediction errors (a mode with coincident
+    poles): nothing is determined, and it says so."""
+    reason = ("the Kalman predictor cannot be evaluated at the estimate (a mode with coincident poles): the record "
+              "does not determine the parameters or ε under this model; their intervals are unbounded")
+    return FitQuality(residual_ratio=math.inf, noise_floor_ratio=0.0, spectral_flatness=0.0,
+                      window_rms_p90_over_median=math.inf, noise_limited=False, approximate=True, reasons=(reason,),
+                      cutoff_hz=0.5 * sample_rate_hz, observer_bandwidth_hz=0.0, effective_samples=fit.n_effective,
+                      converged=fit.converged, model_error=True, determined=False, innovation_rms=math.inf,
+                      process_noise_ratio=fit.process_noise_nm / max(torque_rms_nm, 1e-300))

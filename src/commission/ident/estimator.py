@@ -50,6 +50,9 @@ EDGE_SAMPLES = 4
 _HELD_EPSILON_NFEV = 6
 #: Relative finite-difference step in the log-parameters (as scipy's diff_step).
 _DIFF_STEP = 1e-6
+#: The divergence plateau at most (a residual or prediction error the objectives return where the model
+#: diverges): its sum of squares over a million samples, and its finite differences, stay finite.
+_PLATEAU_MAX = 1e100
 #: Largest lag of the autocorrelation behind n_eff.
 _ACF_LAGS = 20
 #: The log-parameters are bounded to ×/÷ this around the start: a fit that would leave the range is
@@ -290,7 +293,8 @@ def fit(problem: ResidualProblem, start: TwoMassParameters, epsilon_rad: float, 
     v0 = obj(z)
     obj.bad = 10.0 * ref
     if np.all(np.isfinite(v0)):
-        obj.bad = max(obj.bad, 2.0 * float(np.max(np.abs(v0), initial=0.0)))
+        # (a diverged start can be finite at 1e288: a plateau there overflows the least squares' sums, 22:185)
+        obj.bad = min(max(obj.bad, 2.0 * float(np.max(np.abs(v0), initial=0.0))), _PLATEAU_MAX)
     lo_a, hi_a, scale_a, steps_a = (np.array(v, dtype=float) for v in (lo, hi, scale, steps))
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
         if hold_epsilon:
@@ -372,6 +376,9 @@ _PROCESS_NOISE_GRID = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1)
 #: The Kalman fit's log-parameters are bounded to ×/÷ this around its start: its predictor stays finite
 #: far from the plant, and a start's damping can be off by more than ``_LOG_RANGE``.
 _KALMAN_LOG_RANGE = math.log(1e3)
+#: ln of the smallest damping rate B/J [1/s] at the start's inertia: a time constant of years, which no
+#: record tells from none, and with J ×1000 still clear of coincident poles (cond(V) ≈ 2·J/B < 1e12).
+_DAMPING_RATE_FLOOR = math.log(1e-8)
 #: ε's closing profile: ± this share of the estimate, on this many points; its best local minima start
 #: the final fit again.
 _POLISH_SPAN = 0.08
@@ -468,6 +475,12 @@ def _coordinates(start: PemFit, obj: _Objective, epsilon_max_rad: float, torque_
     z = [math.log(getattr(p, n)) for n in PARAMETER_NAMES] + [math.degrees(start.epsilon_rad)]
     lo = [v - _KALMAN_LOG_RANGE for v in z[:6]] + [0.0]
     hi = [v + _KALMAN_LOG_RANGE for v in z[:6]] + [math.degrees(epsilon_max_rad)]
+    for b, j in ((2, 0), (3, 1)):  # B_m over J_m, B_l over J_l
+        # a damping near 0 makes its mass's two poles in the gap coincide, where the predictor has no eigen
+        # decomposition and a fit started there cannot move (a torque-residual fit's on a record no model explains)
+        floor = z[j] + _DAMPING_RATE_FLOOR
+        if lo[b] < floor:  # (bounds left as they were otherwise: the least squares' path depends on them)
+            lo[b], hi[b], z[b] = floor, max(hi[b], floor + 2.0 * _KALMAN_LOG_RANGE), max(z[b], floor)
     scale = [0.1] * 6 + [0.05]
     steps = [_DIFF_STEP * max(abs(v), 1.0) for v in z[:6]] + [1e-5]
     f = max(torque_rms_nm, 1e-12)
@@ -549,8 +562,6 @@ def _polished(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, top_deg: 
     return z, res, interval
 
 
-#: The divergence plateau at most: its sum of squares over a million prediction errors stays finite.
-_PLATEAU_MAX = 1e100
 
 
 def _armed(obj: _KalmanObjective, z: NDArray[np.float64]) -> _KalmanObjective:
