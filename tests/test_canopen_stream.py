@@ -315,3 +315,42 @@ def test_a_lost_cycle_is_rebuilt_from_its_neighbours_and_marked():
     np.testing.assert_array_equal(lost, ~received[1:])
     np.testing.assert_allclose(torque, np.where(lost, intended, applied[1:]) * RATED_NM / 1000)
     np.testing.assert_allclose(velocity, np.diff(counts) * step * rate, rtol=1e-9)
+
+
+def test_the_record_ends_once_the_drive_has_applied_the_last_setpoint() -> None:
+    """Answers that reach the drive after its next SYNC act a cycle late (the drive holds the one before),
+    so near the end it runs behind the host: the record goes on until the drive reports the last setpoint
+    applied. (Ending it when the host had sent the last one left the chirp's last steps out of the record
+    and unplayed: a CI run's record ended 4–7 setpoints short.)"""
+    channel = f"test-late-end-{next(_channels)}"
+    network = canopen.Network()
+    network.connect(interface="virtual", channel=channel)
+    drive = can.Bus(interface="virtual", channel=channel)
+    tpdo, rpdo = 0x181, 0x201
+    targets, late = [10, 20, 30, 40, 50, 60], set(range(4, 16))  # the answers to these cycles' TPDOs come late
+    answers: list[tuple[int, int]] = []  # (first cycle it acts in, setpoint)
+    applied: list[int] = []
+    try:
+        stream = SyncedStream(network, rpdo_cob=rpdo, tpdo_cob=tpdo, period_s=0.02, counter_overflow=240)
+        stream.arm(np.asarray(targets, dtype=np.int16), max_cycles=40)
+        for cycle in range(1, 16):
+            acting = [v for c, v in answers if c <= cycle]
+            applied.append(acting[-1] if acting else 0)
+            drive.send(can.Message(arbitration_id=SYNC_COB_ID, data=[cycle], is_extended_id=False))
+            drive.send(can.Message(arbitration_id=tpdo, data=struct.pack("<ihH", 100 * cycle, applied[-1], 0x1237),
+                                   is_extended_id=False))
+            msg = drive.recv(timeout=2.0)
+            while msg is not None and msg.arbitration_id != rpdo:
+                msg = drive.recv(timeout=2.0)
+            assert msg is not None
+            answers.append((cycle + (2 if cycle in late else 1), SyncedStream.RPDO_STRUCT.unpack(msg.data)[0]))
+            time.sleep(0.01)
+    finally:
+        network.disconnect()
+        drive.shutdown()
+    n = stream.samples()
+    recorded = [int(t) for t in stream.record.torque[1:n + 1]]
+    assert recorded == applied[1:n + 1]  # (record index i is the drive's cycle i + 1)
+    # every setpoint was applied, in order, and the record holds the last one: one cycle later than planned
+    assert [v for i, v in enumerate(recorded) if v and (i == 0 or v != recorded[i - 1])] == targets
+    assert recorded[-1] == targets[-1] and len(targets) + 1 <= n <= len(targets) + 1 + stream.max_lag_cycles

@@ -420,8 +420,13 @@ class SyncedStream:
         else:
             self._pause = 0
             if k == n:
-                self._finish(i)
-                return
+                if torque == self._last_sent or i - (n - 1) > self.max_lag_cycles:
+                    self._finish(i)
+                    return
+                # the drive has not applied the last setpoint yet (an answer reached it after its SYNC, and it
+                # held the one before): ending the record here would leave the chirp's last steps out of it
+                # and unplayed; the last one again, within the lag the envelope allows
+                k = n - 1
         self._handled_at = handled
         value = int(self._targets[k])
         self._send(self.rpdo_cob, self._pack(value))
