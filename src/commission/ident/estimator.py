@@ -562,8 +562,6 @@ def _polished(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, top_deg: 
     return z, res, interval
 
 
-
-
 def _armed(obj: _KalmanObjective, z: NDArray[np.float64]) -> _KalmanObjective:
     """``obj`` with its divergence plateau set far above its residual at ``z`` (and far below where its sum of
     squares would overflow: a predictor that diverges can return finite values of 1e200)."""
