@@ -271,13 +271,7 @@ def _simulate_core(J_m, J_l, B_m, B_l, K, D, eps, h, tau, shift, x0, locate, ful
             else:
                 sig = 1.0 if mode == _MODE_PLUS else (-1.0 if mode == _MODE_MINUS else 0.0)
                 ts[k] = K * (s2 - sig * eps) + D * (s1 - s3)
-        ku = k - shift
-        if ku < 0:
-            u = 0.0
-        elif ku >= n:
-            u = tau[n - 1]
-        else:
-            u = tau[ku]
+        u = _held_input(tau, k - shift)
         if not locate:
             # fixed step: the mode is decided at the sample boundary only
             mode = _classify(s2, eps, linear)
@@ -313,6 +307,14 @@ def _simulate_core(J_m, J_l, B_m, B_l, K, D, eps, h, tau, shift, x0, locate, ful
                 j += 1  # halve the step and try again
     xl, vl = _load_ticks(xm, zz, x0[3], inv_h)
     return xm, zz, xl, vm, vl, vm_tick, vl_tick, ts, np.array([s0, s1, s2, s3]), events
+
+
+@njit(cache=True, inline="always")
+def _held_input(tau, k):
+    """tau[k]: 0 before the record, the last value held after it."""
+    if k < 0:
+        return 0.0
+    return tau[tau.shape[0] - 1] if k >= tau.shape[0] else tau[k]
 
 
 @njit(cache=True, inline="always")

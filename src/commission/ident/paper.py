@@ -189,7 +189,6 @@ def paper_identify(
     fs = float(sample_rate_hz)
     if max_iterations < 1:
         raise IdentificationError("max_iterations must be >= 1")
-
     timings = {"search": 0.0, "frd": 0.0, "fit": 0.0, "simulate": 0.0}
     params, delay_s = _linear_parameters(linear_fit, fs, from_velocity_tf)
     with _timed(timings, "frd"):
@@ -209,11 +208,7 @@ def paper_identify(
             loss0 = loss(0.0)
         detected = fixed_epsilon_rad is not None or not (loss0 <= (1.0 + rel_tol) * res.loss)
         eps = res.epsilon_rad if detected else 0.0
-        with _timed(timings, "simulate"):  # step 5
-            sim = simulate_deadzone(params, eps, tau, fs, delay_samples=d)
-            sim0 = simulate_deadzone(params, 0.0, tau, fs, delay_samples=d) if eps > 0 else sim
-        with _timed(timings, "frd"):
-            err = frd_error(frd_meas, estimate_frd(tau, sim.motor_velocity, fs), frd_band_hz)
+        err, sim, sim0 = _compare(params, eps, tau, fs, d, frd_meas, estimate_frd, frd_band_hz, timings)  # step 5
         iterations.append(PaperIteration(
             index=it, params=params, delay_s=delay_s, epsilon_rad=eps, backlash_detected=detected,
             loss=res.loss if detected else loss0, frd_error=err, search=res,
@@ -237,6 +232,19 @@ def paper_identify(
     return PaperIdentification(params=best.params, epsilon_rad=best.epsilon_rad, delay_s=best.delay_s,
                                frd_error=best.frd_error, backlash_detected=best.backlash_detected,
                                iterations=tuple(iterations), stop_reason=stop_reason, timings_s=timings)
+
+
+def _compare(params: TwoMassParameters, eps: float, tau: NDArray[np.float64], fs: float, d: int, frd_meas: Any,
+             estimate_frd: Callable[..., Any], frd_band_hz: tuple[float, float],
+             timings: dict[str, float]) -> tuple[float, Any, Any]:
+    """Step 5: the model's FRD error against the measured one, and its simulations with ε and without it
+    (step 6 reads both)."""
+    with _timed(timings, "simulate"):
+        sim = simulate_deadzone(params, eps, tau, fs, delay_samples=d)
+        sim0 = simulate_deadzone(params, 0.0, tau, fs, delay_samples=d) if eps > 0 else sim
+    with _timed(timings, "frd"):
+        err = frd_error(frd_meas, estimate_frd(tau, sim.motor_velocity, fs), frd_band_hz)
+    return err, sim, sim0
 
 
 def _steps(estimate_frd: Callable[..., Any] | None, fit_transfer_function: Callable[..., Any] | None,
