@@ -245,19 +245,21 @@ def _region(s: float, eps: float) -> int:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _twist_at(V: NDArray[np.complex128], lam: NDArray[np.complex128], z0: NDArray[np.complex128],
+def _twist_at(V: NDArray[np.complex128], lam: NDArray[np.complex128], m: int, z0: NDArray[np.complex128],
               c: NDArray[np.complex128], t: float) -> float:
+    """The twist at time t into a segment of mode ``m`` (its eigen decomposition picked by index: a view per
+    call would cost its reference counts)."""
     acc = 0.0
-    for i in range(lam.size):
-        a = lam[i] * t
+    for i in range(lam.shape[1]):
+        a = lam[m, i] * t
         ea = np.exp(a)
-        ph = t * (1.0 + 0.5 * a) if abs(a) < 1e-8 else (ea - 1.0) / lam[i]
-        acc += (V[2, i] * (ea * z0[i] + ph * c[i])).real
+        ph = t * (1.0 + 0.5 * a) if abs(a) < 1e-8 else (ea - 1.0) / lam[m, i]
+        acc += (V[m, 2, i] * (ea * z0[i] + ph * c[i])).real
     return acc
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _crossing(V: NDArray[np.complex128], lam: NDArray[np.complex128], z0: NDArray[np.complex128],
+def _crossing(V: NDArray[np.complex128], lam: NDArray[np.complex128], m: int, z0: NDArray[np.complex128],
               c: NDArray[np.complex128], b: float, t0: float, g0: float, t1: float, g1: float, reg: int,
               eps: float) -> float:
     """The first time in (t0, t1] the twist leaves mode ``reg`` through the boundary b (g = s − b changes
@@ -268,7 +270,7 @@ def _crossing(V: NDArray[np.complex128], lam: NDArray[np.complex128], z0: NDArra
         t = t1 - g1 * (t1 - t0) / (g1 - g0) if g1 != g0 else 0.5 * (t0 + t1)
         if not t0 < t < t1:
             t = 0.5 * (t0 + t1)
-        st = _twist_at(V, lam, z0, c, t)
+        st = _twist_at(V, lam, m, z0, c, t)
         g = st - b
         if _region(st, eps) != reg:
             t1, g1 = t, g
@@ -308,14 +310,16 @@ def _product(A: NDArray[np.float64], B: NDArray[np.float64], out: NDArray[np.flo
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, Ts: float,
+def _switching_step(x0: NDArray[np.float64], x: NDArray[np.float64], u: NDArray[np.float64], eps: float, Ts: float,
                     V: NDArray[np.complex128], lam: NDArray[np.complex128], Vi: NDArray[np.complex128],
                     Bc: NDArray[np.float64], jump: NDArray[np.float64], M: NDArray[np.float64]) -> int:
-    """Propagate x over Ts in place, locating each mode switch (x(t) = V·(e^{λt}·z₀ + φ(λ,t)·c));
+    """Propagate ``x0`` over Ts into ``x``, locating each mode switch (x(t) = V·(e^{λt}·z₀ + φ(λ,t)·c));
     returns the number of switches. ``M`` (n × n) becomes the flow's linearization over the sample: each
     mode's transition matrix over its part, and at each switch the saltation matrix I ± jump·e_sᵀ (the
     damper's force jumps at contact, so a twist error moves the switch time and the velocities with it)."""
     n = x.size
+    for i in range(n):
+        x[i] = x0[i]
     t_left = Ts
     events = 0
     z0 = np.empty(n, dtype=np.complex128)
@@ -350,12 +354,12 @@ def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, 
         t_prev, s_prev = 0.0, x[2]
         for j in range(1, _INTERIOR + 1):  # interior points catch a graze that leaves the end in the same mode
             tj = t_left * j / _INTERIOR
-            sj = _twist_at(V[m], lam[m], z0, c, tj)
+            sj = _twist_at(V, lam, m, z0, c, tj)
             side = _region(sj, eps)
             if side != reg:
                 # the boundary crossed: ε or −ε (out of the gap toward ``side``, out of contact toward the gap)
                 b = eps * (side if reg == 0 else reg)
-                tc = _crossing(V[m], lam[m], z0, c, b, t_prev, s_prev - b, tj, sj - b, reg, eps)
+                tc = _crossing(V, lam, m, z0, c, b, t_prev, s_prev - b, tj, sj - b, reg, eps)
                 break
             t_prev, s_prev = tj, sj
         t = t_left if tc < 0 else tc
@@ -388,25 +392,25 @@ def _switching_step(x: NDArray[np.float64], u: NDArray[np.float64], eps: float, 
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _set_valued_friction(xe: NDArray[np.float64], Gam: NDArray[np.float64], velocity: int, column: int,
+def _set_valued_friction(xe: NDArray[np.float64], Gam: NDArray[np.float64], m: int, velocity: int, column: int,
                          F: float) -> float:
     """The Coulomb force [N·m] of the set-valued sign at the interval's end velocity ``xe[velocity]``
     (backward Euler: it never reverses the mass within the sample, and holds it when it can), added to
-    the predicted state ``xe`` through the friction's column of Γ."""
-    f = min(max(xe[velocity] / (-Gam[velocity, column] * F), -1.0), 1.0) * F
+    the predicted state ``xe`` through the friction's column of mode ``m``'s Γ."""
+    f = min(max(xe[velocity] / (-Gam[m, velocity, column] * F), -1.0), 1.0) * F
     for i in range(xe.size):
-        xe[i] += Gam[i, column] * f
+        xe[i] += Gam[m, i, column] * f
     return f
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _predict(x: NDArray[np.float64], tk: float, fmk: float, Fcm: float, Fcl: float, eps: float, Ts: float,
              Phi: NDArray[np.float64], Gam: NDArray[np.float64], PhiH: NDArray[np.float64], GamH: NDArray[np.float64],
-             V: NDArray[np.complex128], lam: NDArray[np.complex128], Vi: NDArray[np.complex128],
-             Bc: NDArray[np.float64], jump: NDArray[np.float64], u: NDArray[np.float64], xe: NDArray[np.float64],
-             Msw: NDArray[np.float64]) -> tuple[int, bool, int]:
-    """One sample's prediction of ``x`` into ``xe``; returns (mode at its start, switched, events); across a
-    switch ``Msw`` holds the flow's linearization."""
+             u: NDArray[np.float64], xe: NDArray[np.float64]) -> tuple[int, bool]:
+    """One sample's prediction of ``x`` into ``xe`` within the mode it starts in, and the inputs ``u`` of the
+    sample; returns (that mode, whether the twist leaves it within the sample: then ``xe`` is to be
+    replaced by :func:`_switching_step`'s, called by the loop itself — a call to it from here, even never
+    taken, costs the reference counts of its arrays at every sample: 5× this function's time)."""
     n = x.size
     reg = _region(x[2], eps)
     m = 0 if reg == 0 else 1
@@ -423,9 +427,9 @@ def _predict(x: NDArray[np.float64], tk: float, fmk: float, Fcm: float, Fcl: flo
         xe[i] = a
     if Fcm > 0.0 and fmk == 0.0:
         # the encoder did not move: the motor's friction as the load's, set-valued at the end velocity
-        u[2] = _set_valued_friction(xe, Gam[m], 1, 2, Fcm)
+        u[2] = _set_valued_friction(xe, Gam, m, 1, 2, Fcm)
     if Fcl > 0.0:
-        u[3] = _set_valued_friction(xe, Gam[m], 3, 3, Fcl)
+        u[3] = _set_valued_friction(xe, Gam, m, 3, 3, Fcl)
     switch = False
     if eps > 0.0:
         switch = _region(xe[2], eps) != reg
@@ -439,13 +443,7 @@ def _predict(x: NDArray[np.float64], tk: float, fmk: float, Fcm: float, Fcl: flo
             for q in range(4):
                 xh2 += GamH[m, 2, q] * u[q]
             switch = _region(xh2, eps) != reg
-    events = 0
-    if switch:
-        for i in range(n):
-            xe[i] = x[i]
-        # (the load friction as the interval's plain prediction set it: continuous across the switch)
-        events = _switching_step(xe, u, eps, Ts, V, lam, Vi, Bc, jump, Msw)
-    return m, switch, events
+    return m, switch
 
 
 #: Sigma points along the twist (Gauss–Hermite, 3 points: offsets 0, ±√3·σ_s, weights 2/3, 1/6, 1/6).
@@ -489,9 +487,9 @@ def _filter(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.f
             h = _SIGMA * math.sqrt(P[2, 2])
             spread = h > 1e-6 * eps and abs(abs(x[2]) - eps) < 4.0 * Ts * abs(x[1] - x[3]) + h
         if not spread:
-            m, switch, ev = _predict(x, tau[k], fm[k], Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, V, lam, Vi, Bc, jump,
-                                     u, xe, Msw)
-            events += ev
+            m, switch = _predict(x, tau[k], fm[k], Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, u, xe)
+            if switch:  # (the load friction as the plain prediction set it in u: continuous across the switch)
+                events += _switching_step(x, xe, u, eps, Ts, V, lam, Vi, Bc, jump, Msw)
             for i in range(n):
                 x[i] = xe[i]
             if steady and m == 1 and not switch and measured[k + 1] and tvar[k] == 0.0:
@@ -520,7 +518,8 @@ def _filter(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.f
                 e[k, o] = 0.0
                 S_out[k, o] = R[o]
             continue
-        _update(x, P, y[k + 1], yl[k + 1], R, e[k], S_out[k], S_st, G_st, g)
+        # (yl is empty without a load encoder: not read past its end)
+        _update(x, P, y[k + 1], yl[k + 1] if nout > 1 else 0.0, R, e, S_out, k, S_st, G_st, g)
         # steady once a contact interval leaves the covariance where the last one did (to ~1e-12)
         steady = _settled(P, P_last) and m == 1 and not switch
     return events
@@ -572,8 +571,8 @@ def _sigma_predict(x: NDArray[np.float64], P: NDArray[np.float64], tk: float, fm
     for p in range(3):
         for i in range(n):
             xs[p, i] = x[i] + _SIGMA_OFFSET[p] * col[i]
-        mp, sw, ev = _predict(xs[p], tk, fmk, Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, V, lam, Vi, Bc, jump, u,
-                              xes[p], Msw)
+        mp, sw = _predict(xs[p], tk, fmk, Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, u, xes[p])
+        ev = _switching_step(xs[p], xes[p], u, eps, Ts, V, lam, Vi, Bc, jump, Msw) if sw else 0
         if p == 0:
             m0, events = mp, ev
         Fs[p, :, :] = Msw if sw else Phi[mp]
@@ -604,13 +603,13 @@ def _sigma_predict(x: NDArray[np.float64], P: NDArray[np.float64], tk: float, fm
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _update(x: NDArray[np.float64], P: NDArray[np.float64], y1: float, yl1: float, R: NDArray[np.float64],
-            e_k: NDArray[np.float64], S_k: NDArray[np.float64], S_st: NDArray[np.float64], G_st: NDArray[np.float64],
-            g: NDArray[np.float64]) -> None:
+            e: NDArray[np.float64], S_out: NDArray[np.float64], k: int, S_st: NDArray[np.float64],
+            G_st: NDArray[np.float64], g: NDArray[np.float64]) -> None:
     """The measurement update at one sample, by sequential scalar updates (independent encoders): the motor
-    position ``y1``, then (with two outputs) the load's ``yl1``. Writes the innovations into ``e_k`` and
-    their variances into ``S_k``, and keeps the gains (``G_st``, ``S_st``) for the steady state."""
+    position ``y1``, then (with two outputs) the load's ``yl1``. Writes the innovations into ``e[k]`` and
+    their variances into ``S_out[k]``, and keeps the gains (``G_st``, ``S_st``) for the steady state."""
     n = x.size
-    for o in range(e_k.size):
+    for o in range(e.shape[1]):
         if o == 0:
             innov = y1 - x[0]
             for i in range(n):
@@ -621,8 +620,8 @@ def _update(x: NDArray[np.float64], P: NDArray[np.float64], y1: float, yl1: floa
             for i in range(n):
                 g[i] = P[i, 0] - P[i, 2]
             S = R[1] + g[0] - g[2]
-        e_k[o] = innov
-        S_k[o] = S
+        e[k, o] = innov
+        S_out[k, o] = S
         S_st[o] = S
         for i in range(n):
             G_st[o, i] = g[i] / S
