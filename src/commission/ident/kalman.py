@@ -263,7 +263,10 @@ def _crossing(V: NDArray[np.complex128], lam: NDArray[np.complex128], m: int, z0
               c: NDArray[np.complex128], b: float, t0: float, g0: float, t1: float, g1: float, reg: int,
               eps: float) -> float:
     """The first time in (t0, t1] the twist leaves mode ``reg`` through the boundary b (g = s − b changes
-    sign on the bracket): Illinois regula falsi; the returned time lies in the new mode."""
+    sign on the bracket): Illinois regula falsi (an end's value halved only when the end is kept twice in
+    a row: halving it every time makes the steps alternate sides and converge no faster than bisection);
+    the returned time lies in the new mode."""
+    kept = 0  # the end kept by the last step: −1 t0, +1 t1
     for _ in range(60):
         if t1 - t0 <= 1e-14 * max(t1, 1e-300):
             break
@@ -274,10 +277,14 @@ def _crossing(V: NDArray[np.complex128], lam: NDArray[np.complex128], m: int, z0
         g = st - b
         if _region(st, eps) != reg:
             t1, g1 = t, g
-            g0 *= 0.5
+            if kept < 0:
+                g0 *= 0.5
+            kept = -1
         else:
             t0, g0 = t, g
-            g1 *= 0.5
+            if kept > 0:
+                g1 *= 0.5
+            kept = 1
     return t1
 
 
