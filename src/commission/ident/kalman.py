@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba.core.cpu
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
@@ -228,6 +229,11 @@ def _model(p: TwoMassParameters, lag_s: float, Ts: float, process_noise_nm: floa
 
 
 # --- compiled core ---------------------------------------------------------------------------------
+#: The functions called at every sample allocate nothing: compiled without the runtime's reference counts
+#: (numba's ``_nrt`` option, where this numba has it; it refuses to compile an allocation there). Their atomic
+#: operations on every array argument, at every call, cost 2–3× a sample's arithmetic.
+_per_sample = njit(cache=True, nogil=True, error_model="numpy",
+                   **({"_nrt": False} if hasattr(numba.core.cpu.CPUTargetOptions, "_nrt") else {}))
 #: Relative change of the covariance over a contact interval below which it is taken as steady (its
 #: gains then reused until the mode changes): far below what moves an estimate.
 _STEADY = 1e-12
@@ -244,7 +250,7 @@ def _region(s: float, eps: float) -> int:
     return 0
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@_per_sample
 def _twist_at(V: NDArray[np.complex128], lam: NDArray[np.complex128], m: int, z0: NDArray[np.complex128],
               c: NDArray[np.complex128], t: float) -> float:
     """The twist at time t into a segment of mode ``m`` (its eigen decomposition picked by index: a view per
@@ -258,7 +264,7 @@ def _twist_at(V: NDArray[np.complex128], lam: NDArray[np.complex128], m: int, z0
     return acc
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@_per_sample
 def _crossing(V: NDArray[np.complex128], lam: NDArray[np.complex128], m: int, z0: NDArray[np.complex128],
               c: NDArray[np.complex128], b: float, t0: float, g0: float, t1: float, g1: float, reg: int,
               eps: float) -> float:
@@ -399,25 +405,20 @@ def _switching_step(x0: NDArray[np.float64], x: NDArray[np.float64], u: NDArray[
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _set_valued_friction(xe: NDArray[np.float64], Gam: NDArray[np.float64], m: int, velocity: int, column: int,
-                         F: float) -> float:
-    """The Coulomb force [N·m] of the set-valued sign at the interval's end velocity ``xe[velocity]``
-    (backward Euler: it never reverses the mass within the sample, and holds it when it can), added to
-    the predicted state ``xe`` through the friction's column of mode ``m``'s Γ."""
-    f = min(max(xe[velocity] / (-Gam[m, velocity, column] * F), -1.0), 1.0) * F
-    for i in range(xe.size):
-        xe[i] += Gam[m, i, column] * f
-    return f
+def _set_valued_friction(v: float, g: float, F: float) -> float:
+    """The Coulomb force [N·m] of the set-valued sign at the interval's end velocity v [rad/s], g the
+    velocity's response to it over the sample (Γ's friction column) (backward Euler: it never reverses
+    the mass within the sample, and holds it when it can)."""
+    return min(max(v / (-g * F), -1.0), 1.0) * F
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@_per_sample
 def _predict(x: NDArray[np.float64], tk: float, fmk: float, Fcm: float, Fcl: float, eps: float, Ts: float,
              Phi: NDArray[np.float64], Gam: NDArray[np.float64], PhiH: NDArray[np.float64], GamH: NDArray[np.float64],
              u: NDArray[np.float64], xe: NDArray[np.float64]) -> tuple[int, bool]:
     """One sample's prediction of ``x`` into ``xe`` within the mode it starts in, and the inputs ``u`` of the
     sample; returns (that mode, whether the twist leaves it within the sample: then ``xe`` is to be
-    replaced by :func:`_switching_step`'s, called by the loop itself — a call to it from here, even never
-    taken, costs the reference counts of its arrays at every sample: 5× this function's time)."""
+    replaced by :func:`_switching_step`'s, which the loop calls)."""
     n = x.size
     reg = _region(x[2], eps)
     m = 0 if reg == 0 else 1
@@ -434,9 +435,13 @@ def _predict(x: NDArray[np.float64], tk: float, fmk: float, Fcm: float, Fcl: flo
         xe[i] = a
     if Fcm > 0.0 and fmk == 0.0:
         # the encoder did not move: the motor's friction as the load's, set-valued at the end velocity
-        u[2] = _set_valued_friction(xe, Gam, m, 1, 2, Fcm)
+        u[2] = f = _set_valued_friction(xe[1], Gam[m, 1, 2], Fcm)
+        for i in range(n):
+            xe[i] += Gam[m, i, 2] * f
     if Fcl > 0.0:
-        u[3] = _set_valued_friction(xe, Gam, m, 3, 3, Fcl)
+        u[3] = f = _set_valued_friction(xe[3], Gam[m, 3, 3], Fcl)
+        for i in range(n):
+            xe[i] += Gam[m, i, 3] * f
     switch = False
     if eps > 0.0:
         switch = _region(xe[2], eps) != reg
@@ -532,7 +537,7 @@ def _filter(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.f
     return events
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@_per_sample
 def _torque_noise(P: NDArray[np.float64], Gam: NDArray[np.float64], var: float) -> None:
     """P ← P + var·g·gᵀ: a torque reference of variance ``var`` [N·m²] held over the sample (g: Γ's τ_ref column)."""
     n = P.shape[0]
@@ -541,7 +546,7 @@ def _torque_noise(P: NDArray[np.float64], Gam: NDArray[np.float64], var: float) 
             P[i, j] += var * Gam[i, 0] * Gam[j, 0]
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@_per_sample
 def _propagate(F: NDArray[np.float64], P: NDArray[np.float64], Qm: NDArray[np.float64], T: NDArray[np.float64]) -> None:
     """P ← F·P·Fᵀ + Q_m, symmetric (T: scratch)."""
     n = P.shape[0]
@@ -608,7 +613,7 @@ def _sigma_predict(x: NDArray[np.float64], P: NDArray[np.float64], tk: float, fm
     return m0, events
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@_per_sample
 def _update(x: NDArray[np.float64], P: NDArray[np.float64], y1: float, yl1: float, R: NDArray[np.float64],
             e: NDArray[np.float64], S_out: NDArray[np.float64], k: int, S_st: NDArray[np.float64],
             G_st: NDArray[np.float64], g: NDArray[np.float64]) -> None:
@@ -638,7 +643,7 @@ def _update(x: NDArray[np.float64], P: NDArray[np.float64], y1: float, yl1: floa
                 P[i, j] -= g[i] * g[j] / S
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@_per_sample
 def _settled(P: NDArray[np.float64], P_last: NDArray[np.float64]) -> bool:
     """Whether ``P`` is where ``P_last`` was, to ``_STEADY`` of its size; ``P_last`` ← ``P``."""
     n = P.shape[0]
