@@ -32,12 +32,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba.core.cpu
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 from scipy.linalg import expm
 
+from .compiled import per_sample
 from .twomass import TwoMassParameters
 
 __all__ = ["KalmanProblem", "Innovations", "innovations", "kalman_problem", "position_step_rad"]
@@ -229,11 +229,6 @@ def _model(p: TwoMassParameters, lag_s: float, Ts: float, process_noise_nm: floa
 
 
 # --- compiled core ---------------------------------------------------------------------------------
-#: The functions called at every sample allocate nothing: compiled without the runtime's reference counts
-#: (numba's ``_nrt`` option, where this numba has it; it refuses to compile an allocation there). Their atomic
-#: operations on every array argument, at every call, cost 2–3× a sample's arithmetic.
-_per_sample = njit(cache=True, nogil=True, error_model="numpy",
-                   **({"_nrt": False} if hasattr(numba.core.cpu.CPUTargetOptions, "_nrt") else {}))
 #: Relative change of the covariance over a contact interval below which it is taken as steady (its
 #: gains then reused until the mode changes): far below what moves an estimate.
 _STEADY = 1e-12
@@ -250,7 +245,7 @@ def _region(s: float, eps: float) -> int:
     return 0
 
 
-@_per_sample
+@per_sample
 def _twist_at(V: NDArray[np.complex128], lam: NDArray[np.complex128], m: int, z0: NDArray[np.complex128],
               c: NDArray[np.complex128], t: float) -> float:
     """The twist at time t into a segment of mode ``m`` (its eigen decomposition picked by index: a view per
@@ -264,7 +259,7 @@ def _twist_at(V: NDArray[np.complex128], lam: NDArray[np.complex128], m: int, z0
     return acc
 
 
-@_per_sample
+@per_sample
 def _crossing(V: NDArray[np.complex128], lam: NDArray[np.complex128], m: int, z0: NDArray[np.complex128],
               c: NDArray[np.complex128], b: float, t0: float, g0: float, t1: float, g1: float, reg: int,
               eps: float) -> float:
@@ -412,7 +407,7 @@ def _set_valued_friction(v: float, g: float, F: float) -> float:
     return min(max(v / (-g * F), -1.0), 1.0) * F
 
 
-@_per_sample
+@per_sample
 def _predict(x: NDArray[np.float64], tk: float, fmk: float, Fcm: float, Fcl: float, eps: float, Ts: float,
              Phi: NDArray[np.float64], Gam: NDArray[np.float64], PhiH: NDArray[np.float64], GamH: NDArray[np.float64],
              u: NDArray[np.float64], xe: NDArray[np.float64]) -> tuple[int, bool]:
@@ -537,7 +532,7 @@ def _filter(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.f
     return events
 
 
-@_per_sample
+@per_sample
 def _torque_noise(P: NDArray[np.float64], Gam: NDArray[np.float64], var: float) -> None:
     """P ← P + var·g·gᵀ: a torque reference of variance ``var`` [N·m²] held over the sample (g: Γ's τ_ref column)."""
     n = P.shape[0]
@@ -546,7 +541,7 @@ def _torque_noise(P: NDArray[np.float64], Gam: NDArray[np.float64], var: float) 
             P[i, j] += var * Gam[i, 0] * Gam[j, 0]
 
 
-@_per_sample
+@per_sample
 def _propagate(F: NDArray[np.float64], P: NDArray[np.float64], Qm: NDArray[np.float64], T: NDArray[np.float64]) -> None:
     """P ← F·P·Fᵀ + Q_m, symmetric (T: scratch)."""
     n = P.shape[0]
@@ -613,7 +608,7 @@ def _sigma_predict(x: NDArray[np.float64], P: NDArray[np.float64], tk: float, fm
     return m0, events
 
 
-@_per_sample
+@per_sample
 def _update(x: NDArray[np.float64], P: NDArray[np.float64], y1: float, yl1: float, R: NDArray[np.float64],
             e: NDArray[np.float64], S_out: NDArray[np.float64], k: int, S_st: NDArray[np.float64],
             G_st: NDArray[np.float64], g: NDArray[np.float64]) -> None:
@@ -643,7 +638,7 @@ def _update(x: NDArray[np.float64], P: NDArray[np.float64], y1: float, yl1: floa
                 P[i, j] -= g[i] * g[j] / S
 
 
-@_per_sample
+@per_sample
 def _settled(P: NDArray[np.float64], P_last: NDArray[np.float64]) -> bool:
     """Whether ``P`` is where ``P_last`` was, to ``_STEADY`` of its size; ``P_last`` ← ``P``."""
     n = P.shape[0]

@@ -57,6 +57,7 @@ from scipy.interpolate import CubicSpline
 from scipy.signal import butter, sosfilt_zi, sosfiltfilt
 
 from ..exceptions import IdentificationError
+from .compiled import per_sample
 
 __all__ = [
     "ResidualProblem",
@@ -416,7 +417,7 @@ def _gap_step(cs: NDArray[np.float64], s: float, Ts: float, xl: float, vl: float
     return xl, vl, s + hi * (1.0 - s), 1.0 if zh > 0.0 else -1.0, 1
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@per_sample  # called at every sample; its helpers are inlined into it
 def _interval(cs: NDArray[np.float64], Ts: float, xl: float, vl: float, side: float, eps: float, kj: float, dj: float,
               bj: float, cj: float, ivs: float, cm: NDArray[np.float64], friction: bool
               ) -> tuple[float, float, float, float, float, int]:
