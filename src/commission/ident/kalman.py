@@ -317,27 +317,23 @@ def _product(A: NDArray[np.float64], B: NDArray[np.float64], out: NDArray[np.flo
             out[i, j] = acc
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@per_sample
 def _switching_step(x0: NDArray[np.float64], x: NDArray[np.float64], u: NDArray[np.float64], eps: float, Ts: float,
                     V: NDArray[np.complex128], lam: NDArray[np.complex128], Vi: NDArray[np.complex128],
-                    Bc: NDArray[np.float64], jump: NDArray[np.float64], M: NDArray[np.float64]) -> int:
+                    Bc: NDArray[np.float64], jump: NDArray[np.float64], M: NDArray[np.float64],
+                    cw: NDArray[np.complex128], rw: NDArray[np.float64]) -> int:
     """Propagate ``x0`` over Ts into ``x``, locating each mode switch (x(t) = V·(e^{λt}·z₀ + φ(λ,t)·c));
     returns the number of switches. ``M`` (n × n) becomes the flow's linearization over the sample: each
     mode's transition matrix over its part, and at each switch the saltation matrix I ± jump·e_sᵀ (the
-    damper's force jumps at contact, so a twist error moves the switch time and the velocities with it)."""
+    damper's force jumps at contact, so a twist error moves the switch time and the velocities with it).
+    ``cw`` ((4 + n) × n, complex) and ``rw`` ((1 + 2n) × n) are scratch."""
     n = x.size
     for i in range(n):
         x[i] = x0[i]
     t_left = Ts
     events = 0
-    z0 = np.empty(n, dtype=np.complex128)
-    c = np.empty(n, dtype=np.complex128)
-    ek = np.empty(n, dtype=np.complex128)
-    phk = np.empty(n, dtype=np.complex128)
-    Ve = np.empty((n, n), dtype=np.complex128)
-    bu = np.empty(n)
-    W = np.empty((n, n))
-    W2 = np.empty((n, n))
+    z0, c, ek, phk, Ve = cw[0], cw[1], cw[2], cw[3], cw[4:]
+    bu, W, W2 = rw[0], rw[1:n + 1], rw[n + 1:]
     for i in range(n):
         for j in range(n):
             M[i, j] = 1.0 if i == j else 0.0
@@ -383,7 +379,9 @@ def _switching_step(x0: NDArray[np.float64], x: NDArray[np.float64], u: NDArray[
         # M ← Φ_m(t)·M
         _flow(V[m], ek, Vi[m], Ve, W)
         _product(W, M, W2)
-        M[:, :] = W2
+        for i in range(n):
+            for j in range(n):
+                M[i, j] = W2[i, j]
         if tc < 0:
             break
         # saltation: into contact +jump·e_sᵀ, out of it −jump·e_sᵀ (the spring's force is continuous there)
@@ -485,6 +483,8 @@ def _filter(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.f
     Fs = np.empty((3, n, n))
     Pc = np.empty((n, n))
     col = np.empty(n)
+    cw = np.empty((4 + n, n), dtype=np.complex128)
+    rw = np.empty((1 + 2 * n, n))
     steady = False
     events = 0
     for k in range(N - 1):
@@ -496,7 +496,7 @@ def _filter(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.f
         if not spread:
             m, switch = _predict(x, tau[k], fm[k], Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, u, xe)
             if switch:  # (the load friction as the plain prediction set it in u: continuous across the switch)
-                events += _switching_step(x, xe, u, eps, Ts, V, lam, Vi, Bc, jump, Msw)
+                events += _switching_step(x, xe, u, eps, Ts, V, lam, Vi, Bc, jump, Msw, cw, rw)
             for i in range(n):
                 x[i] = xe[i]
             if steady and m == 1 and not switch and measured[k + 1] and tvar[k] == 0.0:
@@ -514,7 +514,7 @@ def _filter(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.f
                 _torque_noise(P, Gam[m], tvar[k])
         else:
             m, ev = _sigma_predict(x, P, tau[k], fm[k], Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, V, lam, Vi, Bc, jump,
-                                   Q, u, Msw, xs, xes, Fs, Pc, col, T)
+                                   Q, u, Msw, xs, xes, Fs, Pc, col, T, cw, rw)
             events += ev
             switch = True  # never a steady sample
             if tvar[k] > 0.0:
@@ -555,14 +555,15 @@ def _propagate(F: NDArray[np.float64], P: NDArray[np.float64], Qm: NDArray[np.fl
             P[j, i] = acc
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@per_sample
 def _sigma_predict(x: NDArray[np.float64], P: NDArray[np.float64], tk: float, fmk: float, Fcm: float, Fcl: float,
                    eps: float, Ts: float, Phi: NDArray[np.float64], Gam: NDArray[np.float64], PhiH: NDArray[np.float64],
                    GamH: NDArray[np.float64], V: NDArray[np.complex128], lam: NDArray[np.complex128],
                    Vi: NDArray[np.complex128], Bc: NDArray[np.float64], jump: NDArray[np.float64],
                    Q: NDArray[np.float64], u: NDArray[np.float64], Msw: NDArray[np.float64], xs: NDArray[np.float64],
                    xes: NDArray[np.float64], Fs: NDArray[np.float64], Pc: NDArray[np.float64],
-                   col: NDArray[np.float64], T: NDArray[np.float64]) -> tuple[int, int]:
+                   col: NDArray[np.float64], T: NDArray[np.float64], cw: NDArray[np.complex128],
+                   rw: NDArray[np.float64]) -> tuple[int, int]:
     """One sample's prediction of ``x`` and ``P`` by three points along the twist's direction in the state
     (x ± √3·P[:,2]/σ_s), each through its own modes; the rest of the covariance (given the twist) through
     each point's flow. Returns (the mean point's mode at the start, its contact events)."""
@@ -579,10 +580,12 @@ def _sigma_predict(x: NDArray[np.float64], P: NDArray[np.float64], tk: float, fm
         for i in range(n):
             xs[p, i] = x[i] + _SIGMA_OFFSET[p] * col[i]
         mp, sw = _predict(xs[p], tk, fmk, Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, u, xes[p])
-        ev = _switching_step(xs[p], xes[p], u, eps, Ts, V, lam, Vi, Bc, jump, Msw) if sw else 0
+        ev = _switching_step(xs[p], xes[p], u, eps, Ts, V, lam, Vi, Bc, jump, Msw, cw, rw) if sw else 0
         if p == 0:
             m0, events = mp, ev
-        Fs[p, :, :] = Msw if sw else Phi[mp]
+        for i in range(n):
+            for j in range(n):
+                Fs[p, i, j] = Msw[i, j] if sw else Phi[mp, i, j]
     for i in range(n):
         acc = 0.0
         for p in range(3):
