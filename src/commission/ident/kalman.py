@@ -248,8 +248,7 @@ def _region(s: float, eps: float) -> int:
 @per_sample
 def _twist_at(V: NDArray[np.complex128], lam: NDArray[np.complex128], m: int, z0: NDArray[np.complex128],
               c: NDArray[np.complex128], t: float) -> float:
-    """The twist at time t into a segment of mode ``m`` (its eigen decomposition picked by index: a view per
-    call would cost its reference counts)."""
+    """The twist [rad] at time t [s] into a segment of mode ``m`` (x(t) = V·(e^{λt}·z₀ + φ(λ,t)·c))."""
     acc = 0.0
     for i in range(lam.shape[1]):
         a = lam[m, i] * t
