@@ -508,16 +508,16 @@ def _filter(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.f
                         x[i] += G_st[o, i] * innov
                 continue
             # P ← F P Fᵀ + Q: F the interval's mode's Φ, or across a switch the saltated flow's linearization
-            _propagate(Msw if switch else Phi[m], P, Q[m], T)
+            _propagate(Phi, Msw, switch, m, P, Q, T)
             if tvar[k] > 0.0:
-                _torque_noise(P, Gam[m], tvar[k])
+                _torque_noise(P, Gam, m, tvar[k])
         else:
             m, ev = _sigma_predict(x, P, tau[k], fm[k], Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, V, lam, Vi, Bc, jump,
                                    Q, u, Msw, xs, xes, Fs, Pc, col, T, cw, rw)
             events += ev
             switch = True  # never a steady sample
             if tvar[k] > 0.0:
-                _torque_noise(P, Gam[m], tvar[k])
+                _torque_noise(P, Gam, m, tvar[k])
         if not measured[k + 1]:
             steady = False
             for o in range(nout):
@@ -532,24 +532,32 @@ def _filter(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.f
 
 
 @per_sample
-def _torque_noise(P: NDArray[np.float64], Gam: NDArray[np.float64], var: float) -> None:
-    """P ← P + var·g·gᵀ: a torque reference of variance ``var`` [N·m²] held over the sample (g: Γ's τ_ref column)."""
+def _torque_noise(P: NDArray[np.float64], Gam: NDArray[np.float64], m: int, var: float) -> None:
+    """P ← P + var·g·gᵀ: a torque reference of variance ``var`` [N·m²] held over the sample (g: mode ``m``'s Γ's
+    τ_ref column)."""
     n = P.shape[0]
     for i in range(n):
         for j in range(n):
-            P[i, j] += var * Gam[i, 0] * Gam[j, 0]
+            P[i, j] += var * Gam[m, i, 0] * Gam[m, j, 0]
 
 
 @per_sample
-def _propagate(F: NDArray[np.float64], P: NDArray[np.float64], Qm: NDArray[np.float64], T: NDArray[np.float64]) -> None:
-    """P ← F·P·Fᵀ + Q_m, symmetric (T: scratch)."""
+def _propagate(Phi: NDArray[np.float64], Msw: NDArray[np.float64], switch: bool, m: int, P: NDArray[np.float64],
+               Q: NDArray[np.float64], T: NDArray[np.float64]) -> None:
+    """P ← F·P·Fᵀ + Q_m, symmetric, F the saltated flow ``Msw`` across a switch, else mode ``m``'s Φ (T:
+    scratch; the filter's modes picked by index: a view per sample would cost its reference counts there)."""
     n = P.shape[0]
-    _product(F, P, T)
+    for i in range(n):
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += (Msw[i, k] if switch else Phi[m, i, k]) * P[k, j]
+            T[i, j] = acc
     for i in range(n):
         for j in range(i, n):
-            acc = Qm[i, j]
+            acc = Q[m, i, j]
             for l in range(n):
-                acc += T[i, l] * F[j, l]
+                acc += T[i, l] * (Msw[j, l] if switch else Phi[m, j, l])
             P[i, j] = acc
             P[j, i] = acc
 
@@ -696,5 +704,5 @@ def innovations(problem: KalmanProblem, params: TwoMassParameters, epsilon_rad: 
                      model.PhiH, model.GamH, model.V, model.lam, model.Vi, model.B, jump, Qm, R, x0, P0, e, S,
                      sigma_points)
     S = S / R[None, :]
-    return Innovations(error=e / np.sqrt(R)[None, :], normalized=e / np.sqrt(R)[None, :] / np.sqrt(S),
-                       log_variance=np.log(S), events=int(events))
+    error = e / np.sqrt(R)[None, :]
+    return Innovations(error=error, normalized=error / np.sqrt(S), log_variance=np.log(S), events=int(events))
