@@ -397,11 +397,15 @@ def _switching_step(x0: NDArray[np.float64], x: NDArray[np.float64], u: NDArray[
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _set_valued_friction(v: float, g: float, F: float) -> float:
-    """The Coulomb force [N·m] of the set-valued sign at the interval's end velocity v [rad/s], g the
-    velocity's response to it over the sample (Γ's friction column) (backward Euler: it never reverses
-    the mass within the sample, and holds it when it can)."""
-    return min(max(v / (-g * F), -1.0), 1.0) * F
+def _set_valued_friction(xe: NDArray[np.float64], Gam: NDArray[np.float64], m: int, velocity: int, column: int,
+                         F: float) -> float:
+    """The Coulomb force [N·m] of the set-valued sign at the interval's end velocity ``xe[velocity]``
+    (backward Euler: it never reverses the mass within the sample, and holds it when it can), added to
+    the predicted state ``xe`` through the friction's column of mode ``m``'s Γ."""
+    f = min(max(xe[velocity] / (-Gam[m, velocity, column] * F), -1.0), 1.0) * F
+    for i in range(xe.size):
+        xe[i] += Gam[m, i, column] * f
+    return f
 
 
 @per_sample
@@ -427,13 +431,9 @@ def _predict(x: NDArray[np.float64], tk: float, fmk: float, Fcm: float, Fcl: flo
         xe[i] = a
     if Fcm > 0.0 and fmk == 0.0:
         # the encoder did not move: the motor's friction as the load's, set-valued at the end velocity
-        u[2] = f = _set_valued_friction(xe[1], Gam[m, 1, 2], Fcm)
-        for i in range(n):
-            xe[i] += Gam[m, i, 2] * f
+        u[2] = _set_valued_friction(xe, Gam, m, 1, 2, Fcm)
     if Fcl > 0.0:
-        u[3] = f = _set_valued_friction(xe[3], Gam[m, 3, 3], Fcl)
-        for i in range(n):
-            xe[i] += Gam[m, i, 3] * f
+        u[3] = _set_valued_friction(xe, Gam, m, 3, 3, Fcl)
     switch = False
     if eps > 0.0:
         switch = _region(xe[2], eps) != reg
@@ -545,19 +545,15 @@ def _torque_noise(P: NDArray[np.float64], Gam: NDArray[np.float64], m: int, var:
 def _propagate(Phi: NDArray[np.float64], Msw: NDArray[np.float64], switch: bool, m: int, P: NDArray[np.float64],
                Q: NDArray[np.float64], T: NDArray[np.float64]) -> None:
     """P ← F·P·Fᵀ + Q_m, symmetric, F the saltated flow ``Msw`` across a switch, else mode ``m``'s Φ (T:
-    scratch; the filter's modes picked by index: a view per sample would cost its reference counts there)."""
+    scratch; the mode picked here by index: a view made in the filter's loop costs its reference counts)."""
     n = P.shape[0]
-    for i in range(n):
-        for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += (Msw[i, k] if switch else Phi[m, i, k]) * P[k, j]
-            T[i, j] = acc
+    F = Msw if switch else Phi[m]
+    _product(F, P, T)
     for i in range(n):
         for j in range(i, n):
             acc = Q[m, i, j]
             for l in range(n):
-                acc += T[i, l] * (Msw[j, l] if switch else Phi[m, j, l])
+                acc += T[i, l] * F[j, l]
             P[i, j] = acc
             P[j, i] = acc
 
