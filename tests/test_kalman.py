@@ -301,3 +301,31 @@ def test_a_start_whose_damping_collapsed_to_zero_gives_prediction_errors_and_an_
     # an estimate with no prediction errors is reported as undetermined and flagged, never an error
     q = assess(replace(fit, innovations=None), torque_rms_nm=_rms(tau), sample_rate_hz=fs)
     assert q.approximate and not q.determined and q.model_error and "cannot be evaluated" in q.reasons[0]
+
+
+def test_an_objective_runs_its_predictor_once_per_point_and_keeps_no_difference_columns() -> None:
+    """A least squares starts where its objective's plateau was set, and what follows it evaluates its
+    optimum again: the objective keeps its last points (the same bits a fresh evaluation gives), not the
+    finite-difference columns, which are never asked for twice."""
+    from commission.ident.estimator import _KalmanObjective
+
+    fs = 2000.0
+    tau, r = _record(fs, 2.0, encoder_bits_motor=20)
+    kp = kalman_problem(tau, r.motor_position, fs)
+    z = np.array([math.log(getattr(REFERENCE_PLANT, n)) for n in ("J_m", "J_l", "B_m", "B_l", "K", "D")] + [0.4])
+
+    def objective() -> _KalmanObjective:
+        return _KalmanObjective(kp, ModelTerms(), 1e-3 * kp.torque_rms_nm, 0.0)
+
+    obj = objective()
+    first = obj(z)
+    again = obj(z.copy())
+    assert obj.calls == 1 and np.array_equal(first, again)
+    assert np.array_equal(objective()(z), first)
+    column = z.copy()
+    column[4] += 1e-6
+    obj(column, remember=False)
+    obj(column, remember=False)
+    assert obj.calls == 3
+    inn = obj.innovations(z)
+    assert obj.calls == 3 and inn is not None and inn.normalized.size == first.size

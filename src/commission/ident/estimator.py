@@ -28,6 +28,7 @@ with the Jacobian, which s²·(JᵀJ)⁻¹ ignores.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -53,6 +54,10 @@ _DIFF_STEP = 1e-6
 #: The divergence plateau at most (a residual or prediction error the objectives return where the model
 #: diverges): its sum of squares over a million samples, and its finite differences, stay finite.
 _PLATEAU_MAX = 1e100
+#: Points whose evaluation an objective keeps: a least squares starts where the plateau was set, and its
+#: optimum is evaluated again by what follows (likelihood, polish, result); finite-difference columns
+#: are not kept.
+_REMEMBERED = 4
 #: Largest lag of the autocorrelation behind n_eff.
 _ACF_LAGS = 20
 #: The log-parameters are bounded to ×/÷ this around the start: a fit that would leave the range is
@@ -151,13 +156,40 @@ class _Objective:
                             ("T_c_us", terms.current_loop)) if on)
         self.calls = 0
         self.bad = 1.0
+        self._kept: dict[bytes, Any] = {}
+        self._lock = threading.Lock()
+
+    def _remembered(self, z: NDArray[np.float64], compute: Callable[[NDArray[np.float64]], Any],
+                    remember: bool) -> Any:
+        """``compute(z)``, or its value when this objective has kept it for the same ``z`` (the same bits:
+        the evaluation is deterministic); kept if ``remember`` (the last ``_REMEMBERED`` points)."""
+        key = z.tobytes()
+        with self._lock:
+            if key in self._kept:
+                return self._kept[key]
+        value = compute(z)
+        if remember:
+            with self._lock:
+                self._kept[key] = value
+                while len(self._kept) > _REMEMBERED:
+                    self._kept.pop(next(iter(self._kept)))
+        return value
 
     def unpack(self, z: NDArray[np.float64]) -> tuple[TwoMassParameters, float, dict[str, float]]:
         J_m, J_l, B_m, B_l, K, D = (float(v) for v in np.exp(z[:6]))
         extra = dict(zip(self.names[7:], (float(v) for v in z[7:])))
         return TwoMassParameters(J_m=J_m, J_l=J_l, B_m=B_m, B_l=B_l, K=K, D=D), math.radians(float(z[6])), extra
 
-    def __call__(self, z: NDArray[np.float64]) -> NDArray[np.float64]:
+    def __call__(self, z: NDArray[np.float64], remember: bool = True) -> NDArray[np.float64]:
+        v = self._remembered(z, self._residual, remember)
+        # a diverged simulation — non-finite, or a sample past the flat residual's level (a torque residual
+        # 10× the RMS torque is no plant's; finite but huge, its differences overflowed the Jacobian): a
+        # large, flat residual the fit steps back from, never above it
+        if not (np.all(np.isfinite(v)) and float(np.max(np.abs(v), initial=0.0)) <= self.bad):
+            return np.full(v.shape, self.bad)
+        return v
+
+    def _residual(self, z: NDArray[np.float64]) -> NDArray[np.float64]:
         self.calls += 1
         p, eps, extra = self.unpack(z)
         pr = self.problem
@@ -173,11 +205,7 @@ class _Objective:
         if pr.load_position is not None:
             w = self.load_weight * sim.load_error[1:-1:pr.decimation]
             v = np.concatenate((v, w[EDGE_SAMPLES:-EDGE_SAMPLES]))
-        # a diverged simulation — non-finite, or a sample past the flat residual's level (a torque residual
-        # 10× the RMS torque is no plant's; finite but huge, its differences overflowed the Jacobian): a
-        # large, flat residual the fit steps back from, never above it
-        if not (np.all(np.isfinite(v)) and float(np.max(np.abs(v), initial=0.0)) <= self.bad):
-            return np.full(v.shape, self.bad)
+        v.flags.writeable = False  # kept: read, never changed
         return v
 
 
@@ -209,7 +237,7 @@ def _least_squares(obj: _Objective, z0: NDArray[np.float64], free: NDArray[np.bo
             dy = y.copy()
             # a forward step, backward at an upper bound
             dy[i] += h[i] if y[i] + h[i] <= hi[idx][i] else -h[i]
-            return (obj(full(dy)) - f0) / (dy[i] - y[i])
+            return (obj(full(dy), remember=False) - f0) / (dy[i] - y[i])
 
         return np.stack(list(pool.map(column, range(y.size))), axis=1)
 
@@ -430,8 +458,12 @@ class _KalmanObjective(_Objective):
         self.calls = 0
         self.bad = math.inf
         self.size = (problem.motor_position.size - 1) * problem.outputs
+        self._kept, self._lock = {}, threading.Lock()
 
-    def innovations(self, z: NDArray[np.float64]) -> Innovations | None:
+    def innovations(self, z: NDArray[np.float64], remember: bool = True) -> Innovations | None:
+        return self._remembered(z, self._innovations, remember)  # type: ignore[no-any-return]
+
+    def _innovations(self, z: NDArray[np.float64]) -> Innovations | None:
         self.calls += 1
         p, eps, extra = self.unpack(z)
         return innovations(self.kp, p, eps, coulomb_motor_nm=extra.get("F_cm", 0.0),
@@ -440,12 +472,12 @@ class _KalmanObjective(_Objective):
                            twist_noise_rad=self.twist_noise_rad or self.twist_noise * eps,
                            sigma_points=self.twist_noise_rad > 0.0 or self.twist_noise > 0.0)
 
-    def __call__(self, z: NDArray[np.float64]) -> NDArray[np.float64]:
+    def __call__(self, z: NDArray[np.float64], remember: bool = True) -> NDArray[np.float64]:
         """e_k/√S_k · ⁿ√(Π S): its sum of squares is the likelihood with the noise's scale concentrated out,
         exp(−2·ln L/N) up to a constant. The prediction errors alone (Σe²) reward a model that makes the
         filter trust the encoders (a tiny J_m turns the torque disturbance into a huge acceleration
         noise): a wrong basin the variances' term closes."""
-        inn = self.innovations(z)
+        inn = self.innovations(z, remember)
         if inn is None:
             v = np.full(self.size + self.robust, math.inf)
         elif self.robust:
@@ -503,7 +535,7 @@ def _epsilon_profile(obj: _KalmanObjective, z: NDArray[np.float64], top_deg: flo
         return np.concatenate((z[:6], [min(eps_deg, top_deg)], z[7:]))
 
     def best(values: list[float]) -> float:
-        costs = list(pool.map(lambda e: float(np.sum(obj(at(e)) ** 2)), values))
+        costs = list(pool.map(lambda e: float(np.sum(obj(at(e), remember=False) ** 2)), values))
         return values[int(np.argmin(costs))]
 
     e = best([z[6] * f for f in _EPSILON_FACTORS])
@@ -597,7 +629,7 @@ def _epsilon_polish(obj: _KalmanObjective, z: NDArray[np.float64], top_deg: floa
     grid = [min(z[6] * (1.0 + _POLISH_SPAN * f), top_deg) for f in np.linspace(-1.0, 1.0, _POLISH_POINTS)]
 
     def nll(eps_deg: float) -> float:
-        inn = obj.innovations(np.concatenate((z[:6], [eps_deg], z[7:])))
+        inn = obj.innovations(np.concatenate((z[:6], [eps_deg], z[7:])), remember=False)
         return inn.negative_log_likelihood() * inn.normalized.size if inn is not None else math.inf
 
     costs = np.array(list(pool.map(nll, grid)))
@@ -761,7 +793,7 @@ def _hedge(objective: Callable[[float], _KalmanObjective], z: NDArray[np.float64
             grid = np.geomspace(_HEDGE_GRID_FROM_DEG, top_deg, _HEDGE_GRID_POINTS)
 
             def cost(eps_deg: float) -> float:
-                return float(np.sum(obj(np.concatenate((z[:6], [eps_deg], z[7:]))) ** 2))
+                return float(np.sum(obj(np.concatenate((z[:6], [eps_deg], z[7:])), remember=False) ** 2))
 
             z = np.concatenate((z[:6], [grid[int(np.argmin(list(pool.map(cost, grid))))]], z[7:]))
         z = ls(obj, z, _HEDGE_NFEV, _CONTINUATION_TOL)[0]
