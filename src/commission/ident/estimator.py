@@ -28,7 +28,6 @@ with the Jacobian, which s²·(JᵀJ)⁻¹ ignores.
 from __future__ import annotations
 
 import math
-import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -54,10 +53,6 @@ _DIFF_STEP = 1e-6
 #: The divergence plateau at most (a residual or prediction error the objectives return where the model
 #: diverges): its sum of squares over a million samples, and its finite differences, stay finite.
 _PLATEAU_MAX = 1e100
-#: Points whose evaluation an objective keeps: a least squares starts where the plateau was set, and its
-#: optimum is evaluated again by what follows (likelihood, polish, result); finite-difference columns
-#: are not kept.
-_REMEMBERED = 4
 #: Largest lag of the autocorrelation behind n_eff.
 _ACF_LAGS = 20
 #: The log-parameters are bounded to ×/÷ this around the start: a fit that would leave the range is
@@ -156,23 +151,20 @@ class _Objective:
                             ("T_c_us", terms.current_loop)) if on)
         self.calls = 0
         self.bad = 1.0
-        self._kept: dict[bytes, Any] = {}
-        self._lock = threading.Lock()
+        self._last: tuple[bytes, Any] | None = None
 
     def _remembered(self, z: NDArray[np.float64], compute: Callable[[NDArray[np.float64]], Any],
                     remember: bool) -> Any:
-        """``compute(z)``, or its value when this objective has kept it for the same ``z`` (the same bits:
-        the evaluation is deterministic); kept if ``remember`` (the last ``_REMEMBERED`` points)."""
-        key = z.tobytes()
-        with self._lock:
-            if key in self._kept:
-                return self._kept[key]
+        """``compute(z)``, or its value when ``z`` is the last point kept (the same bits: the evaluation is
+        deterministic); ``z`` kept if ``remember``. A least squares starts where :func:`_armed` set the
+        plateau, and its optimum is evaluated again by what follows (likelihood, ε polish, result); its
+        finite-difference columns and the grids are not kept."""
+        key, last = z.tobytes(), self._last  # (read once: another thread may replace it meanwhile)
+        if last is not None and last[0] == key:
+            return last[1]
         value = compute(z)
         if remember:
-            with self._lock:
-                self._kept[key] = value
-                while len(self._kept) > _REMEMBERED:
-                    self._kept.pop(next(iter(self._kept)))
+            self._last = (key, value)
         return value
 
     def unpack(self, z: NDArray[np.float64]) -> tuple[TwoMassParameters, float, dict[str, float]]:
@@ -458,7 +450,7 @@ class _KalmanObjective(_Objective):
         self.calls = 0
         self.bad = math.inf
         self.size = (problem.motor_position.size - 1) * problem.outputs
-        self._kept, self._lock = {}, threading.Lock()
+        self._last = None
 
     def innovations(self, z: NDArray[np.float64], remember: bool = True) -> Innovations | None:
         return self._remembered(z, self._innovations, remember)  # type: ignore[no-any-return]
