@@ -231,6 +231,31 @@ def test_a_fit_that_explains_nothing_claims_no_precision() -> None:
     assert any("unexplained" in r for r in absorbed.reasons)
 
 
+def test_a_gap_whose_likelihood_is_flat_past_the_polished_span_is_flagged_not_reported_as_known() -> None:
+    # 22:151 on an AMD CPU: ε 0.045° for 0.058°, the curvature's interval ±0.0005°, the likelihood ratio's
+    # open up to the searched 2°: the estimate must say it does not know, not pass as within its tolerance
+    from commission.ident.assess import assess
+    from commission.ident.estimator import ModelTerms, PemFit
+    from commission.ident.kalman import Innovations
+
+    nu = np.random.default_rng(2).standard_normal((4000, 1))
+    inn = Innovations(error=nu, normalized=nu, log_variance=np.zeros_like(nu), events=0)
+    names = ("ln J_m", "ln J_l", "ln B_m", "ln B_l", "ln K", "ln D", "eps_deg")
+    cov = np.eye(7) * 1e-10
+    cov[6, 6] = (0.0005 / 1.96) ** 2
+
+    def fit_with(profile_deg: tuple[float, float]) -> PemFit:
+        return PemFit(parameters=REFERENCE_PLANT, epsilon_rad=math.radians(0.045), coulomb_motor_nm=0.0,
+                      coulomb_load_nm=0.0, lag_s=0.0, terms=ModelTerms(), residual=nu[:, 0], cost_nm=1.0,
+                      names=names, covariance=cov, n_effective=4000.0, evaluations=10, converged=True,
+                      message="", process_noise_nm=1e-4, innovations=inn, epsilon_profile_deg=profile_deg)
+
+    open_ended = assess(fit_with((0.0444, 2.0)), torque_rms_nm=0.1, sample_rate_hz=4000.0)
+    assert open_ended.approximate and any("bounds ε only to [0.0444°, 2°]" in r for r in open_ended.reasons)
+    bounded = assess(fit_with((0.0440, 0.0460)), torque_rms_nm=0.1, sample_rate_hz=4000.0)
+    assert not bounded.approximate, bounded.reasons
+
+
 def test_a_load_encoder_gives_the_start_where_the_gap_pulls_the_frequency_response_low() -> None:
     # 1.5° of gap on the reference plant: the gap softens the spring the FRD sees; both encoders'
     # equations of motion give the start, and the record is identified within the tolerances

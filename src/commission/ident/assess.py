@@ -10,7 +10,8 @@ model and its noise model describe the record. A result is *approximate* when
   the record: it then stands in for dynamics the model lacks, and the errors look like noise (the
   intervals are then unbounded: the curvature describes no bias); or
 * the least squares stopped at its evaluation limit, not at a stationary point; or
-* a 95 % interval is wider than commissioning needs: ε to ``EPSILON_TOLERANCE_DEG`` or
+* a 95 % interval is wider than commissioning needs: ε's (from the curvature, or from the likelihood
+  ratio on its profile when the fit polished it) to ``EPSILON_TOLERANCE_DEG`` or
   ``RELATIVE_TOLERANCE`` of itself, J_m, J_l and K to ``RELATIVE_TOLERANCE``, the resonance and
   anti-resonance frequencies to ``MODE_TOLERANCE``.
 
@@ -91,9 +92,15 @@ def _interval_reasons(fit: PemFit) -> list[str]:
     """Why the record determines the estimate too loosely for commissioning (empty: it does not)."""
     reasons: list[str] = []
     eps_deg = math.degrees(fit.epsilon_rad)
+    tolerance = max(EPSILON_TOLERANCE_DEG, RELATIVE_TOLERANCE * eps_deg)
     half = 1.96 * fit.stderr("eps_deg")
-    if not half <= max(EPSILON_TOLERANCE_DEG, RELATIVE_TOLERANCE * eps_deg):
+    if not half <= tolerance:
         reasons.append(f"the record determines ε only to ±{half:.3g}° (95 %)")
+    elif fit.epsilon_profile_deg is not None and not max(eps_deg - fit.epsilon_profile_deg[0],
+                                                         fit.epsilon_profile_deg[1] - eps_deg) <= tolerance:
+        # the likelihood ratio on ε's rugged profile: a profile flat past the polished span is no bound
+        lo, hi = fit.epsilon_profile_deg
+        reasons.append(f"the record bounds ε only to [{lo:.3g}°, {hi:.3g}°] (95 %, likelihood ratio)")
     wide = [n for n in ("J_m", "J_l", "K") if not 1.96 * fit.stderr("ln " + n) <= RELATIVE_TOLERANCE]
     if wide:
         reasons.append("the record determines " + ", ".join(
