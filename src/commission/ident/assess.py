@@ -96,11 +96,11 @@ def _interval_reasons(fit: PemFit) -> list[str]:
     half = 1.96 * fit.stderr("eps_deg")
     if not half <= tolerance:
         reasons.append(f"the record determines ε only to ±{half:.3g}° (95 %)")
-    elif fit.epsilon_profile_deg is not None and not max(eps_deg - fit.epsilon_profile_deg[0],
-                                                         fit.epsilon_profile_deg[1] - eps_deg) <= tolerance:
+    elif fit.epsilon_profile_deg is not None:
         # the likelihood ratio on ε's rugged profile: a profile flat past the polished span is no bound
         lo, hi = fit.epsilon_profile_deg
-        reasons.append(f"the record bounds ε only to [{lo:.3g}°, {hi:.3g}°] (95 %, likelihood ratio)")
+        if not max(eps_deg - lo, hi - eps_deg) <= tolerance:
+            reasons.append(f"the record bounds ε only to [{lo:.3g}°, {hi:.3g}°] (95 %, likelihood ratio)")
     wide = [n for n in ("J_m", "J_l", "K") if not 1.96 * fit.stderr("ln " + n) <= RELATIVE_TOLERANCE]
     if wide:
         reasons.append("the record determines " + ", ".join(
