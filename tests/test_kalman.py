@@ -274,7 +274,8 @@ def test_a_fit_stopped_at_its_limit_within_a_tenth_of_a_standard_error_of_its_op
     for offset, expected in ((0.05, True), (0.5, False), (3.0, False)):
         res = stopped(best + offset * sd)
         assert res.status == 0
-        assert _within_a_step(res, _covariance(res.jac, res.fun)) is expected, offset
+        assert _within_a_step(res.jac, res.fun, _covariance(res.jac, res.fun)) is expected, offset
+        assert _within_a_step(res.jac, res.fun) is expected, offset  # the default: the same covariance
 
 
 def test_a_start_whose_damping_collapsed_to_zero_gives_prediction_errors_and_an_assessment() -> None:

@@ -207,6 +207,7 @@ def _least_squares(obj: _Objective, z0: NDArray[np.float64], free: NDArray[np.bo
     """least_squares over the ``free`` coordinates of ``z0`` (the others held)."""
     idx = np.flatnonzero(free)
     last: dict[bytes, NDArray[np.float64]] = {}
+    jacobian: dict[bytes, NDArray[np.float64]] = {}
 
     def full(y: NDArray[np.float64]) -> NDArray[np.float64]:
         z = z0.copy()
@@ -231,12 +232,26 @@ def _least_squares(obj: _Objective, z0: NDArray[np.float64], free: NDArray[np.bo
             dy[i] += h[i] if y[i] + h[i] <= hi[idx][i] else -h[i]
             return (obj(full(dy), remember=False) - f0) / (dy[i] - y[i])
 
-        return np.stack(list(pool.map(column, range(y.size))), axis=1)
+        J = np.stack(list(pool.map(column, range(y.size))), axis=1)
+        jacobian.clear()
+        jacobian[y.tobytes()] = J
+        return J
+
+    def settled(intermediate_result: Any) -> None:  # (scipy passes the state by this parameter's name)
+        # an iterate whose Gauss–Newton step moves no coordinate by more than a tenth of its standard
+        # error is the estimate: the iterations after it only crawl below the record's own uncertainty
+        state = intermediate_result
+        J = jacobian.get(state.x.tobytes())
+        if J is not None and _within_a_step(J, np.asarray(state.fun)):
+            raise StopIteration
 
     # xtol stays tight whatever ``tol``: it is relative to ‖z‖, which T_c_us (hundreds of µs) dominates; at
     # 1e-4 it stopped a continuation after two evaluations, its steps in the log-parameters "small"
     res = least_squares(fun, np.clip(z0[idx], lo[idx], hi[idx]), jac=jac, bounds=(lo[idx], hi[idx]),
-                        method="trf", x_scale=scale[idx], max_nfev=max_nfev, ftol=tol, xtol=_KALMAN_TOL)
+                        method="trf", x_scale=scale[idx], max_nfev=max_nfev, ftol=tol, xtol=_KALMAN_TOL,
+                        callback=settled)
+    if res.status == _STOPPED_BY_CALLBACK:
+        res.status, res.message = _SETTLED, "the Gauss–Newton step is within a tenth of a standard error"
     return full(res.x), res
 
 
@@ -338,7 +353,7 @@ def _result(obj: _Objective, z: NDArray[np.float64], res: Any, n_effective: floa
                   coulomb_load_nm=extra.get("F_cl", 0.0), lag_s=1e-6 * extra.get("T_c_us", 0.0), terms=obj.terms,
                   residual=r, cost_nm=float(np.sqrt(np.mean(r * r))), names=obj.names, covariance=cov,
                   n_effective=n_effective, evaluations=evaluations,
-                  converged=bool(res.status > 0 or _within_a_step(res, cov[np.ix_(free, free)])) and not np.all(r == obj.bad),
+                  converged=bool(res.status > 0 or _within_a_step(np.asarray(res.jac), r, cov[np.ix_(free, free)])) and not np.all(r == obj.bad),
                   message=str(res.message), **fields)
 
 
@@ -348,12 +363,22 @@ def _result(obj: _Objective, z: NDArray[np.float64], res: Any, n_effective: floa
 _CONVERGED_STEP = 0.1
 
 
-def _within_a_step(res: Any, cov: NDArray[np.float64]) -> bool:
-    """Whether the Gauss–Newton step −(JᵀJ)⁻¹Jᵀr at a least squares' end is within ``_CONVERGED_STEP``
-    standard errors (``cov``, of its free coordinates) in every coordinate."""
-    J, r = np.asarray(res.jac), np.asarray(res.fun)
-    step = -np.linalg.pinv(J.T @ J) @ (J.T @ r)
-    return bool(np.all(np.abs(step) <= _CONVERGED_STEP * np.sqrt(np.diag(cov))))
+#: scipy's status of a least squares its callback stopped, and the status it is given here (converged).
+_STOPPED_BY_CALLBACK, _SETTLED = -2, 5
+
+
+def _within_a_step(J: NDArray[np.float64], r: NDArray[np.float64], cov: NDArray[np.float64] | None = None) -> bool:
+    """Whether the Gauss–Newton step −(JᵀJ)⁻¹Jᵀr (J: n × p, r: n) is within ``_CONVERGED_STEP`` standard
+    errors in every coordinate: those of ``cov`` (p × p), by default the Newey–West covariance, computed
+    only when the plain s²·(JᵀJ)⁻¹ does not already rule the step out (it costs ~20 products of J)."""
+    Hinv = np.linalg.pinv(J.T @ J)
+    step = np.abs(Hinv @ (J.T @ r))
+    if cov is None:
+        plain = float(r @ r) / max(r.size - J.shape[1], 1) * np.diag(Hinv)
+        if np.any(step > _CONVERGED_STEP * np.sqrt(np.maximum(plain, 0.0))):
+            return False
+        cov = _covariance(J, r)
+    return bool(np.all(step <= _CONVERGED_STEP * np.sqrt(np.diag(cov))))
 
 
 _TERM_COORDINATE = {"coulomb_motor": "F_cm", "coulomb_load": "F_cl", "current_loop": "T_c_us"}
