@@ -12,6 +12,9 @@ noise model from the encoders' quantization and an estimated torque disturbance)
 cell of the scan (first with ε held at the cell's, then everything); its Wald statistics select the
 optional terms (:func:`significant_terms`).
 
+Every least squares stops once its Gauss–Newton step moves no coordinate by more than a tenth of its
+standard error (:func:`_within_a_step`): what is left is below the record's own uncertainty.
+
 Finite-difference columns run on threads (the compiled kernels release the GIL); each column is
 computed alone, so the result does not depend on the number of threads. No accept/reject rule
 chooses between paths: the answer is a smooth function of the data.
