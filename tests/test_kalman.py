@@ -276,6 +276,10 @@ def test_a_fit_stopped_at_its_limit_within_a_tenth_of_a_standard_error_of_its_op
         assert res.status == 0
         assert _within_a_step(res.jac, res.fun, _covariance(res.jac, res.fun)) is expected, offset
         assert _within_a_step(res.jac, res.fun) is expected, offset  # the default: the same covariance
+    # differences taken across a divergence plateau: no step, and no error from the linear algebra
+    huge = np.stack((np.full(t.size, 1e200), t), axis=1)
+    assert _within_a_step(huge, A @ best - y) is False
+    assert _within_a_step(np.stack((np.full(t.size, np.inf), t), axis=1), A @ best - y) is False
 
 
 def test_a_start_whose_damping_collapsed_to_zero_gives_prediction_errors_and_an_assessment() -> None:

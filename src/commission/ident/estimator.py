@@ -374,14 +374,18 @@ def _within_a_step(J: NDArray[np.float64], r: NDArray[np.float64], cov: NDArray[
     """Whether the Gauss–Newton step −(JᵀJ)⁻¹Jᵀr (J: n × p, r: n) is within ``_CONVERGED_STEP`` standard
     errors in every coordinate: those of ``cov`` (p × p), by default the Newey–West covariance, computed
     only when the plain s²·(JᵀJ)⁻¹ does not already rule the step out (it costs ~20 products of J)."""
-    Hinv = np.linalg.pinv(J.T @ J)
-    step = np.abs(Hinv @ (J.T @ r))
-    if cov is None:
-        plain = float(r @ r) / max(r.size - J.shape[1], 1) * np.diag(Hinv)
-        if np.any(step > _CONVERGED_STEP * np.sqrt(np.maximum(plain, 0.0))):
+    with np.errstate(all="ignore"):  # differences across a divergence plateau: no step to speak of
+        try:
+            Hinv = np.linalg.pinv(J.T @ J)
+            step = np.abs(Hinv @ (J.T @ r))
+            if cov is None:
+                plain = float(r @ r) / max(r.size - J.shape[1], 1) * np.diag(Hinv)
+                if not np.all(step <= _CONVERGED_STEP * np.sqrt(plain)):
+                    return False
+                cov = _covariance(J, r)
+        except np.linalg.LinAlgError:
             return False
-        cov = _covariance(J, r)
-    return bool(np.all(step <= _CONVERGED_STEP * np.sqrt(np.diag(cov))))
+        return bool(np.all(step <= _CONVERGED_STEP * np.sqrt(np.diag(cov))))
 
 
 _TERM_COORDINATE = {"coulomb_motor": "F_cm", "coulomb_load": "F_cl", "current_loop": "T_c_us"}
