@@ -24,12 +24,12 @@ import math
 import multiprocessing
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
 from collections import Counter, defaultdict
 from collections.abc import Iterable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -330,9 +330,18 @@ def _run_all(seed: int, indices: list[int], jobs: int, adapt: bool) -> Iterable[
         for i in indices:
             yield evaluate(seed, i, adapt)
         return
-    ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
-        yield from (f.result() for f in as_completed([pool.submit(evaluate, seed, i, adapt) for i in indices]))
+    pool = multiprocessing.get_context("spawn").Pool(jobs)
+    try:
+        yield from pool.imap_unordered(_evaluate, [(seed, i, adapt) for i in indices])
+        pool.close()
+    finally:
+        # an interrupted bench (Ctrl-C, SIGTERM) stops its workers: they would run on to their members' ends
+        pool.terminate()
+        pool.join()
+
+
+def _evaluate(args: tuple[int, int, bool]) -> dict[str, Any]:
+    return evaluate(*args)
 
 
 def _git_commit() -> str:
@@ -347,6 +356,8 @@ def _git_commit() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # SIGTERM as an exit, not an abrupt end: the worker processes are stopped on the way out
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=DEFAULT_SEED, help=f"family seed (default {DEFAULT_SEED})")
     ap.add_argument("--size", type=int, default=DEFAULT_SIZE, help=f"family size (default {DEFAULT_SIZE})")
