@@ -243,8 +243,9 @@ def _least_squares(obj: _Objective, z0: NDArray[np.float64], free: NDArray[np.bo
     def settled(intermediate_result: Any) -> None:  # (scipy passes the state by this parameter's name)
         # an iterate whose Gauss–Newton step moves no coordinate by more than a tenth of its standard
         # error is the estimate: the iterations after it only crawl below the record's own uncertainty
+        # (taken, not read: after a rejected step scipy calls back at the same point, already tested)
         state = intermediate_result
-        J = jacobian.get(state.x.tobytes())
+        J = jacobian.pop(state.x.tobytes(), None)
         if J is not None and _within_a_step(J, np.asarray(state.fun)):
             raise StopIteration
 

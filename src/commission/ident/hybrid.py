@@ -582,12 +582,12 @@ def _seeded_by_delay(run: _Run, best: PemFit, d: int, other: PemFit,
     except (IdentificationError, ValueError, np.linalg.LinAlgError) as err:
         tried.append({"delay_samples": at, "seeded_by_delay": d, "negative_log_likelihood": math.inf, "failed": str(err)})
         return best, 0
-    tried.append({"delay_samples": at, "seeded_by_delay": d, "negative_log_likelihood": _likelihood_cost(seeded)})
-    if not _likelihood_cost(seeded) < _likelihood_cost(best):
+    nll, nll_best = _likelihood_cost(seeded), _likelihood_cost(best)
+    tried.append({"delay_samples": at, "seeded_by_delay": d, "negative_log_likelihood": nll})
+    if not nll < nll_best:
         return best, seeded.evaluations
     run.notes.append(f"from the estimate with the torque {d - at} sample{'s' if d - at > 1 else ''} later, the fit "
-                     f"makes the record {_likelier(_likelihood_cost(best), _likelihood_cost(seeded))}× as likely per "
-                     "prediction error and is kept")
+                     f"makes the record {_likelier(nll_best, nll)}× as likely per prediction error and is kept")
     return seeded, seeded.evaluations
 
 
