@@ -92,6 +92,18 @@ def judge(truth: dict[str, Any], est: dict[str, Any]) -> dict[str, Any]:
     return {"errors": errors, "within": within}
 
 
+#: A start (the frequency-domain one, or the encoders') this close to the truth in J_m, J_l and K is "near".
+START_NEAR_REL = 0.2
+
+
+def start_errors(result: Any, truth: dict[str, Any]) -> dict[str, float] | None:
+    """The start stage's J_m, J_l, K relative to the truth (None: the stage is not in the result)."""
+    start = next((s.detail.get("parameters") for s in result.stages if s.name == "start"), None)
+    if not start:
+        return None
+    return {k: start[k] / truth["two_mass"][k] - 1.0 for k in ("J_m", "J_l", "K")}
+
+
 def evaluate(seed: int, index: int, resolution_from_duration: bool = False) -> dict[str, Any]:
     """Simulate and identify one member; the JSON line of the benchmark."""
     m = member(seed, index)
@@ -110,6 +122,7 @@ def evaluate(seed: int, index: int, resolution_from_duration: bool = False) -> d
     row["error"] = None
     row["stages_s"] = {s.name: round(s.seconds, 3) for s in result.stages}
     row["restarts"] = next((s.detail.get("starts") for s in result.stages if s.name == "restarts"), None)
+    row["start_errors"] = start_errors(result, truth)
     row.update(_estimates(result))
     row.update(judge(truth, row["estimate"]))
     lo, hi = row["interval_deg"]
@@ -184,9 +197,25 @@ def summary(rows: list[dict[str, Any]], timing_note: str) -> list[str]:
     if failures:
         out.append("no result, by reason:")
         out += [f"  {c:4d}  {msg}" for msg, c in failures.most_common()]
+    out += _by_start(rows)
     out.append("out of tolerance, by quantity (results): " + ", ".join(
         f"{k} {sum(1 for r in results if not r['within'][k])}"
         for k in ("epsilon_deg", "J_m", "J_l", "K", "f_resonance_hz", "f_antiresonance_hz")))
+    return out
+
+
+def _by_start(rows: list[dict[str, Any]]) -> list[str]:
+    """Verdicts by how near the start was to the truth: what a better start would buy."""
+    known = [r for r in rows if r.get("start_errors")]
+    if not known:
+        return []
+    out = [f"by the start's distance to the truth (J_m, J_l, K; {len(known)} members with a start):"]
+    near = [r for r in known if max(abs(v) for v in r["start_errors"].values()) <= START_NEAR_REL]
+    for name, group in ((f"within {100 * START_NEAR_REL:.0f} %", near),
+                        ("further off", [r for r in known if r not in near])):
+        v = Counter(r["verdict"] for r in group)
+        out.append(f"  start {name:<16} {len(group):4d}: " + (", ".join(
+            f"{k.replace('_', ' ')} {v[k]}" for k in VERDICTS if v[k]) or "none"))
     return out
 
 
