@@ -413,14 +413,9 @@ def significant_terms(result: PemFit, *, keep_all: bool = False) -> tuple[ModelT
 
 # --- the estimator: prediction errors of the Kalman predictor -------------------------------------
 #: Torque disturbances per sample, relative to RMS τ_ref, of the Kalman fits before the noise model is
-#: chosen: a predictor that follows the record closely has a wide basin; the fit with the noise model the
-#: likelihood chooses then sharpens it.
-_CONTINUATION = (1e-2,)
-#: A predictor that trusts the model: the continuation's second level where the fit without it needs a
-#: large disturbance (it moved no estimate of the typical members by more than 0.14 % and cost a third of
-#: their time, but kept 22:071 in the truth's basin: bench/results/family.md), and the one a fit whose
-#: noise model needs a large disturbance is sharpened from (:meth:`_KalmanFit.sharpened`).
-_SHARP_LEVEL = 1e-3
+#: chosen: a predictor that follows the record closely has a wide basin, one that trusts the model a
+#: sharp minimum.
+_CONTINUATION = (1e-2, 1e-3)
 #: The continuation's least squares on the Cauchy likelihood (:meth:`_KalmanObjective._cauchy`): its
 #: basin around the truth is wide where the Gaussian one is a needle; the final fit is Gaussian.
 _ROBUST_CONTINUATION = True
@@ -680,13 +675,11 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
     (its parameters, ε, terms and their values).
 
     1. continuation (``_CONTINUATION``): the Cauchy likelihood's least squares with a predictor that
-       assumes a large torque disturbance (wide basin; ε profiled there);
+       assumes a large torque disturbance (wide basin; ε profiled there), then one that trusts the model;
     2. the noise model chosen by likelihood there (encoders' quantization known; the torque disturbance
        and its share on the load estimated), and the least squares of the Gaussian likelihood, the
        noise's scale concentrated out (:meth:`_KalmanObjective.__call__`), sharpened again while its
-       noise model needs more than ``_SHARPEN_ABOVE``; intervals: its Newey–West covariance;
-    3. if it still needs more, the whole fit again with the continuation's second level ``_SHARP_LEVEL``,
-       the likelier estimate kept (``hedged``: that level from the start).
+       noise model needs more than ``_SHARPEN_ABOVE``; intervals: its Newey–West covariance.
 
     Terms: each of ``start.terms`` is a coordinate; after the continuation one within a standard error of
     0 is held there (none with ``keep_all``); the result keeps a term by its Wald statistic on the final
@@ -699,34 +692,15 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
     estimate needs a large disturbance (a start outside the needle the plain likelihood has there).
     """
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        sharper = _CONTINUATION + (_SHARP_LEVEL,)
-        fast = _kalman_path(problem, start, epsilon_max_rad, pool, max_nfev, keep_all, hedged,
-                            sharper if hedged else _CONTINUATION)
-        if hedged or not fast.process_noise_nm > _SHARPEN_ABOVE * problem.torque_rms_nm:
-            return fast
-        # the fast path may have left the basin the sharper continuation keeps: that path too, the likelier
-        # estimate kept
-        sharp = _kalman_path(problem, start, epsilon_max_rad, pool, max_nfev, keep_all, hedged, sharper)
-    best = sharp if _nll_of(sharp) < _nll_of(fast) else fast
-    return replace(best, evaluations=fast.evaluations + sharp.evaluations)
-
-
-def _nll_of(fit_: PemFit) -> float:
-    return fit_.innovations.negative_log_likelihood() if fit_.innovations is not None else math.inf
-
-
-def _kalman_path(problem: KalmanProblem, start: PemFit, epsilon_max_rad: float, pool: ThreadPoolExecutor,
-                 max_nfev: int, keep_all: bool, hedged: bool, levels: tuple[float, ...]) -> PemFit:
-    """One :func:`kalman_fit` with the continuation over ``levels``."""
-    run = _KalmanFit(problem, start, epsilon_max_rad, pool, max_nfev, hedged)
-    obj, z, res = run.continuation(keep_all, levels)
-    obj, z, res = run.sharpened(obj, z, res)
-    if not res.status > 0 and _hold_dampings(_held_covariance(res, run.free), run.free):
-        z, res = run.ls(obj, z, max_nfev)  # what stopped it may be a damping crawling toward 0
-    interval = None
-    if z[6] > 0:
-        obj, z, res, interval = run.polished(obj, z, res)
-    run.calls += obj.calls
+        run = _KalmanFit(problem, start, epsilon_max_rad, pool, max_nfev, hedged)
+        obj, z, res = run.continuation(keep_all)
+        obj, z, res = run.sharpened(obj, z, res)
+        if not res.status > 0 and _hold_dampings(_held_covariance(res, run.free), run.free):
+            z, res = run.ls(obj, z, max_nfev)  # what stopped it may be a damping crawling toward 0
+        interval = None
+        if z[6] > 0:
+            obj, z, res, interval = run.polished(obj, z, res)
+        run.calls += obj.calls
     return _kalman_result(obj, z, res, run.free, run.calls, start.selection, keep_all, interval)
 
 
@@ -760,10 +734,9 @@ class _KalmanFit:
         o = _armed(self.objective(level, share), z0)
         return (o, *self.ls(o, z0, self.max_nfev))
 
-    def continuation(self, keep_all: bool, levels: tuple[float, ...] = _CONTINUATION) -> tuple[
-            _KalmanObjective, NDArray[np.float64], Any]:
-        """Step 1 over ``levels`` (the hedged fit started by :func:`_hedge`), the terms within a standard
-        error of 0 held, and the noise model settled where it ends."""
+    def continuation(self, keep_all: bool) -> tuple[_KalmanObjective, NDArray[np.float64], Any]:
+        """Step 1 (the hedged fit started by :func:`_hedge`), the terms within a standard error of 0 held,
+        and the noise model settled where it ends."""
         z, profiled = self.z, False
         if self.hedged and z[6] > 0:
             z, spent = _hedge(lambda noise_rad: _KalmanObjective(
@@ -771,11 +744,11 @@ class _KalmanFit:
                 z, self.top_deg, self.ls, self.pool)
             self.calls += spent
             profiled = True
-        # a predictor that follows the record (wide basin, where ε is profiled), then (``_SHARP_LEVEL``) one
-        # that trusts the model (sharp minimum; a profile there could jump to a neighbouring valley)
-        for level in levels:
+        # a predictor that follows the record (wide basin, where ε is profiled), then one that trusts the
+        # model (sharp minimum; a profile there could jump to a neighbouring valley)
+        for level in _CONTINUATION:
             obj = _armed(self.objective(level, robust=_ROBUST_CONTINUATION), z)
-            if level == levels[0] and z[6] > 0 and _PROFILE_FIRST and not profiled:
+            if level == _CONTINUATION[0] and z[6] > 0 and _PROFILE_FIRST and not profiled:
                 z = _epsilon_profile(obj, z, self.top_deg, self.pool)
             z, res = self.ls(obj, z, _CONTINUATION_NFEV, _CONTINUATION_TOL)
             self.calls += obj.calls
@@ -785,8 +758,8 @@ class _KalmanFit:
     def sharpened(self, obj: _KalmanObjective, z: NDArray[np.float64],
                   res: Any) -> tuple[_KalmanObjective, NDArray[np.float64], Any]:
         """A noise model that needs a large disturbance flattens the likelihood: the fit may have stopped in
-        a neighbouring basin; sharpened again from there (the Cauchy likelihood at ``_SHARP_LEVEL``),
-        the noise model chosen again, kept if the record is more likely."""
+        a neighbouring basin; sharpened again from there (the Cauchy likelihood at the smallest
+        continuation level), the noise model chosen again, kept if the record is more likely."""
         nll = math.nan  # the current estimate's, computed once and carried from round to round
         share = obj.load_share
         for _ in range(_SHARPEN_ROUNDS):
@@ -802,7 +775,7 @@ class _KalmanFit:
                     obj, z, res, nll = obj2, z2, res2, nll2
                     continue
                 self.calls += obj2.calls
-            sharp = _armed(self.objective(_SHARP_LEVEL, share, robust=True), z)
+            sharp = _armed(self.objective(_CONTINUATION[-1], share, robust=True), z)
             z2 = self.ls(sharp, z, _CONTINUATION_NFEV, _CONTINUATION_TOL)[0]
             self.calls += sharp.calls
             obj2, z2, res2 = self.settle(z2)
