@@ -98,7 +98,10 @@ START_NEAR_REL = 0.2
 
 def start_errors(result: Any, truth: dict[str, Any]) -> dict[str, float] | None:
     """The start stage's J_m, J_l, K relative to the truth (None: the stage is not in the result)."""
-    start = next((s.detail.get("parameters") for s in result.stages if s.name == "start"), None)
+    try:
+        start = result.stage("start").detail.get("parameters")
+    except KeyError:  # the paper pipeline has no start stage
+        return None
     if not start:
         return None
     return {k: start[k] / truth["two_mass"][k] - 1.0 for k in ("J_m", "J_l", "K")}
@@ -210,9 +213,10 @@ def _by_start(rows: list[dict[str, Any]]) -> list[str]:
     if not known:
         return []
     out = [f"by the start's distance to the truth (J_m, J_l, K; {len(known)} members with a start):"]
-    near = [r for r in known if max(abs(v) for v in r["start_errors"].values()) <= START_NEAR_REL]
-    for name, group in ((f"within {100 * START_NEAR_REL:.0f} %", near),
-                        ("further off", [r for r in known if r not in near])):
+    groups: dict[bool, list[dict[str, Any]]] = {True: [], False: []}
+    for r in known:
+        groups[max(abs(v) for v in r["start_errors"].values()) <= START_NEAR_REL].append(r)
+    for name, group in ((f"within {100 * START_NEAR_REL:.0f} %", groups[True]), ("further off", groups[False])):
         v = Counter(r["verdict"] for r in group)
         out.append(f"  start {name:<16} {len(group):4d}: " + (", ".join(
             f"{k.replace('_', ' ')} {v[k]}" for k in VERDICTS if v[k]) or "none"))
