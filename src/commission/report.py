@@ -131,8 +131,7 @@ def _options(config: Mapping[str, Any] | None, identification: Any = None,
     """FRD band and resolution (the identification's own when it has them) and the ε range."""
     opts = (config or {}).get("identification") or {}
     band = tuple(opts.get("band_hz") or (0.1, 400.0))
-    res = float(opts.get("resolution_hz") or 0.0)  # not configured: the whole record's
-    res = max(res, fs / n_samples) if n_samples else (res or 0.1)
+    res = max(float(opts.get("resolution_hz") or 0.1), fs / n_samples if n_samples else 0.0)
     for stage in getattr(identification, "stages", []) or []:
         if stage.name == "start" and "band_hz" in stage.detail:
             band = tuple(stage.detail["band_hz"])

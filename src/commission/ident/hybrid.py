@@ -100,30 +100,20 @@ def _check_recording(rec: Recording, opt: IdentificationOptions) -> None:
                                       "saturated or clipped")
 
 
-#: FRD resolution of the standard 10 s experiment [Hz]; a shorter record's coarser one is noted.
-_STANDARD_RESOLUTION_HZ = 0.1
-
-
 def _band(rec: Recording, opt: IdentificationOptions, notes: list[str]) -> tuple[tuple[float, float], float]:
     """The FRD's band and resolution for this record: the configured band (default: up to the top
-    of the band the transformed samples' torque excites), at the configured resolution or the one the
-    record's length allows."""
+    of the band the torque excites), at the resolution the record's length allows."""
     from .start import excited_band_hz
 
     fs = rec.sample_rate_hz
-    resolution = fs / len(rec) if opt.resolution_hz is None else max(opt.resolution_hz, fs / len(rec))
-    if opt.resolution_hz is not None and resolution > opt.resolution_hz * (1 + 1e-9):
+    resolution = max(opt.resolution_hz, fs / len(rec))
+    if resolution > opt.resolution_hz * (1 + 1e-9):
         notes.append(f"a {len(rec) / fs:g} s record: FRD at {resolution:.3g} Hz resolution "
                      f"(the configured {opt.resolution_hz:g} Hz needs {1 / opt.resolution_hz:g} s)")
-    elif opt.resolution_hz is None and resolution > _STANDARD_RESOLUTION_HZ * (1 + 1e-9):
-        notes.append(f"a {len(rec) / fs:g} s record: FRD at {resolution:.3g} Hz resolution (1/its length; the "
-                     f"standard {1 / _STANDARD_RESOLUTION_HZ:g} s experiment's is {_STANDARD_RESOLUTION_HZ:g} Hz)")
     if opt.band_hz is not None:
         lo, hi = opt.band_hz
     else:
-        # only the first fs/resolution samples are transformed: a chirp's later (higher) frequencies are
-        # not in their DFT, whose bins there hold leakage and noise
-        lo, hi = 0.0, min(excited_band_hz(rec.torque_ref[:round(fs / resolution)], fs), 0.45 * fs)
+        lo, hi = 0.0, min(excited_band_hz(rec.torque_ref, fs), 0.45 * fs)
     lo = max(lo, resolution)
     if hi <= lo + 4 * resolution:
         raise IdentificationError(f"the torque excites no band to identify (up to {hi:.3g} Hz at "

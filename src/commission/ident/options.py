@@ -28,10 +28,8 @@ class IdentificationOptions(BaseModel):
     band_hz: tuple[float, float] | None = Field(
         None, description="Frequency band of the FRD and its fit [Hz], (low, high); default: from the "
         "chirp's start to the top of the band the record's torque excites.")
-    resolution_hz: float | None = Field(
-        None, gt=0, description="FRD resolution [Hz]; default 1/the record's length (the whole record is "
-        "transformed). A coarser one transforms the record's first 1/resolution_hz seconds only, and the band "
-        "stops where those excite; a record shorter than that is identified at 1/its length.")
+    resolution_hz: float = Field(
+        0.1, gt=0, description="Finest FRD resolution [Hz]; a shorter record is identified at 1/its length.")
     epsilon_bounds_deg: tuple[float, float] = Field(
         (0.01, 1.0), description="Range of the backlash half-width ε's scan [deg] (paper Table 2); the hybrid "
         "scan doubles its top (up to 16°) while its best cell lies there, and the fit may go from 0 to "
