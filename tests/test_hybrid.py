@@ -274,3 +274,25 @@ def test_the_load_friction_a_load_encoder_shows_is_fitted() -> None:
     for p in ("J_m", "J_l", "K"):
         assert getattr(res.parameters, p) == pytest.approx(getattr(m.two_mass, p), rel=0.02), p
     assert res.friction is not None and res.friction["load_nm"] == pytest.approx(m.coulomb_load_nm, rel=0.25)
+
+
+@pytest.mark.parametrize(("ratio", "f_r"), [(0.1, 30.0), (1.0, 150.0), (10.0, 350.0)])
+def test_the_last_start_reads_a_two_mass_plant_off_its_apparent_inertia(ratio: float, f_r: float) -> None:
+    # the start for an FRD no rational fit and no peak/dip pair place: on the analytic FRD of a plant
+    # whose parameters were chosen, inertias within 25 % and the resonance within 15 %
+    from commission.ident.frd import FRD
+    from commission.ident.start import inertia_start
+    from conftest import two_mass_plant
+
+    p = two_mass_plant(ratio, f_r, 0.08)
+    f = np.arange(1, int(2.5 * f_r / 0.1) + 1) * 0.1
+    num, den = p.velocity_tf()
+    g = np.polyval(num, 2j * np.pi * f) / np.polyval(den, 2j * np.pi * f)
+    q = inertia_start(FRD(f, g, np.ones(f.size), np.ones(f.size, complex), g, 8000.0, 0.1), 2000.0)
+    assert q is not None
+    assert q.J_m == pytest.approx(p.J_m, rel=0.25)
+    assert q.J_l == pytest.approx(p.J_l, rel=0.25)
+    assert modes(q).f_resonance_hz == pytest.approx(f_r, rel=0.15)
+    # a response with no inertia in it (a pure damper) gives no start
+    flat = np.full(f.size, 2.0 + 0j)
+    assert inertia_start(FRD(f, flat, np.ones(f.size), np.ones(f.size, complex), flat, 8000.0, 0.1), 2000.0) is None

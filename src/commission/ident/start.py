@@ -181,15 +181,19 @@ def frequency_start(rec: Recording, problem: ResidualProblem, *, band_hz: tuple[
             cost = projected_cell(problem, cell_rates(p, 0.5), 0.0, coulomb=True).cost_nm
             scored.append((cost, f_lo, p, how, float(fit.delay_s)))
     if not scored:
-        p = _shape_start(frd, f_max)
+        p, how = _shape_start(frd, f_max), "shape"
+        if p is None:
+            p, how = inertia_start(frd, f_max), "inertia"
         if p is None:
             raise IdentificationError("the frequency response is not that of a two-mass plant with its resonance "
                                       f"below fs/4 = {f_max:.0f} Hz, from any low band edge up to "
-                                      f"{max(edges, default=band_hz[0]):g} Hz")
+                                      f"{max(edges, default=band_hz[0]):g} Hz, nor shows an inertia")
+        what = ("its shape" if how == "shape" else "its apparent inertia (no resonance shows; the fit's quality will "
+                "say whether the record determines one)")
         notes.append("no rational fit of the frequency response gave a two-mass plant (friction or impacts distort "
-                     f"it); the start is read off its shape: resonance {modes(p).f_resonance_hz:.1f} Hz, "
+                     f"it); the start is read off {what}: resonance {modes(p).f_resonance_hz:.1f} Hz, "
                      f"anti-resonance {modes(p).f_antiresonance_hz:.1f} Hz")
-        return Start(frd, whole, p, "shape", 1.0 / fs, band_hz[0])
+        return Start(frd, whole, p, how, 1.0 / fs, band_hz[0])
     cost, f_lo, p, how, delay = min(scored, key=lambda c: (c[0], c[1]))
     if f_lo > band_hz[0]:
         notes.append(f"frequency-domain start fitted from {f_lo:g} Hz up (chosen by the torque residual "
@@ -228,6 +232,40 @@ def _shape_start(frd: FRD, f_max: float) -> TwoMassParameters | None:
     K = (2.0 * np.pi * f_a) ** 2 * J_l
     B = 2.0 * np.pi * 1.0 * (J_m + J_l)
     D = 2.0 * 0.05 * 2.0 * np.pi * f_r / (1.0 / J_m + 1.0 / J_l)
+    return TwoMassParameters(J_m=J_m, J_l=J_l, B_m=0.5 * B, B_l=0.5 * B, K=K, D=D)
+
+
+def inertia_start(frd: FRD, f_max: float) -> TwoMassParameters | None:
+    """The last start, for an FRD that shows no resonance a fit or its shape can place: from the apparent
+    inertia Im(1/G)/ω (a viscous term goes to the real part) — its median over the band's lowest 2 %
+    (at least 5 bins) is J_m + J_l, over its top 20 % below ``f_max`` J_m (above a resonance the motor
+    moves alone) — and the anti-resonance where it falls half way between the two (past the
+    anti-resonance the load moves against the motor; J_m + J_l split evenly when the two do not differ),
+    ζ 0.05, a mechanical corner at 1 Hz. None when it shows no positive inertia."""
+    f = frd.frequency_hz
+    with np.errstate(divide="ignore", invalid="ignore"):
+        j = (1.0 / frd.response).imag / (2.0 * np.pi * f)
+    inside = np.isfinite(j) & (f < f_max)
+    f, j = f[inside], j[inside]
+    if f.size < 20:
+        return None
+    total = float(np.median(j[:max(5, f.size // 50)]))
+    top = float(np.median(j[-max(5, f.size // 5):]))
+    if not total > 0.0:
+        return None
+    J_m = top if 0.0 < top < 0.9 * total else 0.5 * total
+    J_l = total - J_m
+    # the first fall below half way above the low band, in its running median over ±25 bins (at most
+    # 2,000 points of it)
+    step = max(1, f.size // 2000)
+    at = np.arange(max(5, f.size // 50), f.size, step)
+    smooth = np.array([np.median(j[max(0, i - 25):i + 26]) for i in at])
+    below = np.flatnonzero(smooth < 0.5 * (total + J_m))
+    f_a = float(f[at[below[0]]]) if below.size else float(np.sqrt(f[0] * f[-1]))
+    K = (2.0 * np.pi * f_a) ** 2 * J_l
+    w_r = math.sqrt(K * total / (J_m * J_l))
+    B = 2.0 * np.pi * 1.0 * total
+    D = 2.0 * 0.05 * w_r / (1.0 / J_m + 1.0 / J_l)
     return TwoMassParameters(J_m=J_m, J_l=J_l, B_m=0.5 * B, B_l=0.5 * B, K=K, D=D)
 
 
