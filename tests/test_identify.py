@@ -229,6 +229,12 @@ def test_a_fit_that_explains_nothing_claims_no_precision() -> None:
     absorbed = assess(fit_with(1.0, disturbance_nm=0.02), torque_rms_nm=0.1, sample_rate_hz=8000.0)
     assert absorbed.approximate and absorbed.model_error
     assert any("unexplained" in r for r in absorbed.reasons)
+    # 2.5 % of RMS τ_ref: more than a drive's noise, flagged, the intervals kept; 1.5 %: a noisy drive's
+    suspect = assess(fit_with(1.0, disturbance_nm=0.0025), torque_rms_nm=0.1, sample_rate_hz=8000.0)
+    assert suspect.approximate and suspect.model_error and suspect.determined
+    assert any("may bias" in r for r in suspect.reasons)
+    noisy = assess(fit_with(1.0, disturbance_nm=0.0015), torque_rms_nm=0.1, sample_rate_hz=8000.0)
+    assert not noisy.approximate and noisy.determined
 
 
 def test_a_gap_whose_likelihood_is_flat_past_the_polished_span_is_flagged_not_reported_as_known() -> None:
