@@ -1,5 +1,6 @@
 """The command line: modes, outputs, and bad input as one line with a non-zero exit."""
 
+import argparse
 import json
 import subprocess
 import sys
@@ -219,3 +220,13 @@ def test_a_first_run_says_that_it_compiles(tmp_path):
     assert "compiling the numerical kernels" in first.stderr and "compiling" not in first.stdout
     assert "compiling" not in again.stderr
     assert any((tmp_path / "numba-cache").rglob("*.nbi"))  # the cache went where numba was told
+
+
+def test_the_last_line_says_what_a_new_record_needs_when_the_identification_names_it() -> None:
+    from commission.cli import _next_step
+
+    args = argparse.Namespace(replay=None, sim=False)
+    fit = {"approximate": True, "reasons": ["r"], "remedies": ["record with a load encoder", "a longer chirp"]}
+    line = _next_step(args, {"out_dir": "o", "identification": {"fit": fit}})
+    assert "a new record would help: record with a load encoder; or a longer chirp" in line
+    assert "new record" not in _next_step(args, {"out_dir": "o", "identification": {"fit": {**fit, "remedies": []}}})

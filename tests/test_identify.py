@@ -235,6 +235,12 @@ def test_a_fit_that_explains_nothing_claims_no_precision() -> None:
     assert any("may bias" in r for r in suspect.reasons)
     noisy = assess(fit_with(1.0, disturbance_nm=0.0015), torque_rms_nm=0.1, sample_rate_hz=8000.0)
     assert not noisy.approximate and noisy.determined
+    # what a new record needs is said for a record without a load encoder that leaves model error, and only then
+    assert not suspect.remedies and not fine.remedies
+    side = dict(torque_rms_nm=0.1, sample_rate_hz=8000.0, load_encoder=False)
+    assert any("load encoder" in r for r in assess(fit_with(1.0, disturbance_nm=0.02), **side).remedies)
+    assert assess(fit_with(1.0, disturbance_nm=0.0025), **side).remedies
+    assert not assess(fit_with(1.0), **side).remedies and not assess(fit_with(300.0), **side).remedies
 
 
 def test_a_gap_whose_likelihood_is_flat_past_the_polished_span_is_flagged_not_reported_as_known() -> None:

@@ -656,8 +656,8 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
             ("inertias", f"J_m {tm['J_m']:.4g}  J_l {tm['J_l']:.4g} kg·m²  (ratio {tm['J_l'] / tm['J_m']:.3g})"),
             ("shaft", f"K {tm['K']:.4g} N·m/rad  D {tm['D']:.3g} N·m·s/rad"),
             ("friction", f"B_m {tm['B_m']:.3g}  B_l {tm['B_l']:.3g} N·m·s/rad"),
-            ("resonance", f"{md['f_resonance_hz']:.2f} Hz  ζ {md['zeta_resonance']:.3f}"),
-            ("anti-resonance", f"{md['f_antiresonance_hz']:.2f} Hz  ζ {md['zeta_antiresonance']:.3f}"),
+            ("resonance", _mode_text(md, "resonance")),
+            ("anti-resonance", _mode_text(md, "antiresonance")),
         ]
         fit = ident.get("fit")
         if fit is not None:
@@ -732,6 +732,12 @@ def _announce_compilation(term: _Terminal) -> Iterator[None]:
         yield
 
 
+def _mode_text(md: dict[str, Any], name: str) -> str:
+    """A mode of result.json's ``modes`` as a table cell ("none" where the estimate has none: JSON null)."""
+    f, z = md.get(f"f_{name}_hz"), md.get(f"zeta_{name}")
+    return "none" if f is None or z is None else f"{f:.2f} Hz  ζ {z:.3f}"
+
+
 def _next_step(args: argparse.Namespace, result: dict[str, Any]) -> str:
     """The last line: what to do with what this run left."""
     if "fleet" in result:
@@ -751,6 +757,10 @@ def _next_step(args: argparse.Namespace, result: dict[str, Any]) -> str:
         return (f"next: the settings are on the drive; {see}"
                 + ("" if result["apply"]["stored"] else "; --store keeps them after a power cycle")
                 + f"; --restore-from {Path(result['out_dir']) / 'run.mcap'} puts the old values back")
+    remedies = ((result.get("identification") or {}).get("fit") or {}).get("remedies") or []
+    if remedies:
+        see += ("; the identification is approximate: unless something else moved the axis during the run, a new "
+                "record would help: " + "; or ".join(remedies))
     ctl = result.get("controller")
     if ctl is None:
         missing = "--no-identify" if "identification" not in result else "--no-tune"

@@ -596,6 +596,10 @@ def _verdict(ident: Any, tuning: TuningOutcome | None) -> str:
     if quality is not None and quality.approximate:
         notes.append("The identification says its result is approximate: " + "; ".join(quality.reasons)
                      + ". Read its notes under 'Identified model' before trusting the settings.")
+        remedies = getattr(quality, "remedies", ())
+        if remedies:
+            notes.append("Unless something else moved the axis during the run, a new record would help: "
+                         + "; or ".join(remedies) + ".")
     if tuning is None:
         why = ("No identification in this run (--no-identify, or it failed): measured data only."
                if ident is None else "No controller settings in this run (--no-tune): the identified model only.")

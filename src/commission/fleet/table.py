@@ -216,7 +216,7 @@ def row_from_result(doc: Mapping[str, Any]) -> dict[str, Any]:
         intervals[name] = _interval(doc, name, value)
         row[_param(name)] = value
         row[_param(name, "low")], row[_param(name, "high")] = intervals[name]
-    f_r, f_a = float(md["f_resonance_hz"]), float(md["f_antiresonance_hz"])
+    f_r, f_a = (math.nan if md[k] is None else float(md[k]) for k in ("f_resonance_hz", "f_antiresonance_hz"))
     row.update(f_resonance_hz=f_r, f_antiresonance_hz=f_a)
     row.update(_mode_intervals(tm, intervals, f_r, f_a))
     fit = doc.get("fit")

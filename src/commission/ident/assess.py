@@ -130,10 +130,17 @@ DISTURBANCE_MISFIT = 0.04
 #: parameters beyond their intervals (a held-out member: J_m +2.8 % at 2.4 %, its interval ±0.07 %;
 #: bench/results/family.md).
 DISTURBANCE_SUSPECT = 0.02
+#: What lets a motor-side record whose fit leaves model error determine the plant: such records are mostly of
+#: gears whose gap is wide against the chirp (it rattles them) with a chirp ending near the resonance, where the
+#: start lies in a wrong basin; a load encoder's start does not (README, Known limits; bench/results/family.md).
+MOTOR_SIDE_REMEDIES = ("record with a load encoder: the start then comes from both encoders' equations of motion",
+                       "end the chirp at 3.5× the resonance or more (excitation.f_end_hz), within the sample rate")
 
 
-def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float) -> FitQuality:
-    """The quality of the estimate (:func:`commission.ident.estimator.kalman_fit`; see the module docstring)."""
+def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float, load_encoder: bool = True) -> FitQuality:
+    """The quality of the estimate (:func:`commission.ident.estimator.kalman_fit`; see the module docstring).
+    ``load_encoder``: whether the record had one (without, a fit that leaves model error but follows the record
+    names what a new record needs, ``FitQuality.remedies``)."""
     inn = fit.innovations
     if inn is None:
         return _unevaluated(fit, torque_rms_nm, sample_rate_hz)
@@ -177,7 +184,9 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float) -> FitQu
                       approximate=bool(reasons), reasons=tuple(reasons), cutoff_hz=0.5 * sample_rate_hz,
                       observer_bandwidth_hz=0.0, effective_samples=fit.n_effective, converged=fit.converged,
                       interval_scale=scale, model_error=bool(misfit or not determined), determined=determined,
-                      innovation_rms=level, process_noise_ratio=disturbance)
+                      innovation_rms=level, process_noise_ratio=disturbance,
+                      remedies=(MOTOR_SIDE_REMEDIES if misfit and level < INNOVATION_UNDETERMINED and not load_encoder
+                                else ()))
 
 
 def _unevaluated(fit: PemFit, torque_rms_nm: float, sample_rate_hz: float) -> FitQuality:

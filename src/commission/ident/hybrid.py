@@ -45,7 +45,7 @@ from .estimator import ModelTerms, PemFit, fit, significant_terms
 from .kalman import KalmanProblem
 from .options import IdentificationOptions, Method, options_from_mapping
 from .result import FitQuality, Identification, StageResult
-from .twomass import TwoMassParameters, modes
+from .twomass import Modes, TwoMassParameters, modes
 
 __all__ = ["FitQuality", "Identification", "IdentificationOptions", "Method", "StageResult", "identify",
            "options_from_mapping"]
@@ -665,7 +665,7 @@ def _check_stage(run: _Run, cell: Any, pem: PemFit) -> tuple[FitQuality, list[di
     from .frd import estimate_frd
 
     rec, fs = run.rec, run.fs
-    quality = assess(pem, torque_rms_nm=_torque_rms(run), sample_rate_hz=fs)
+    quality = assess(pem, torque_rms_nm=_torque_rms(run), sample_rate_hz=fs, load_encoder=run.use_load)
     run.notes.extend(f"approximate result: {r}" for r in quality.reasons)
     if quality.noise_limited:
         run.notes.append(f"the model leaves {100 * quality.residual_ratio:.2f} % of the torque unexplained, but as "
@@ -698,11 +698,18 @@ def _identification(run: _Run, pem: PemFit, quality: FitQuality, iterations: lis
         run.notes.append(f"no backlash detected: ε̂ = {math.degrees(eps):.4f}° ≤ {run.opt.no_backlash_threshold_deg}°")
     params = pem.parameters
     num, den = params.velocity_tf()
+    try:
+        plant_modes = modes(params)
+    except IdentificationError as err:  # an estimate with no resonance: a result all the same, saying so
+        plant_modes = Modes(math.nan, math.nan, math.nan, math.nan, math.nan)
+        quality = replace(quality, approximate=True,
+                          reasons=(*quality.reasons, f"the estimate has no two-mass modes to report ({err})"))
+        run.notes.append(f"approximate result: {quality.reasons[-1]}")
     return Identification(
         method=Method.HYBRID, parameters=params, epsilon_rad=eps,
         epsilon_interval_rad=(_epsilon_interval(pem, float(run.cutoff["position_step_rad"])) if quality.determined
                               else (0.0, max(run.epsilon_searched_rad, math.radians(EPSILON_EXTEND_MAX_DEG), eps))),
-        evaluations=scan_evaluations + pem.evaluations, modes=modes(params), num=num, den=den,
+        evaluations=scan_evaluations + pem.evaluations, modes=plant_modes, num=num, den=den,
         delay_s=(1 + run.delay_samples) / run.fs, iterations=iterations, stages=stages, source_samples=len(run.rec),
         sample_rate_hz=run.fs, backlash_detected=detected, notes=run.notes, fit=quality,
         parameter_stderr=pem.relative_stderr, parameter_interval=_intervals(pem, quality.determined), friction=_friction(pem, run.opt),

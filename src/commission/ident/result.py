@@ -71,10 +71,14 @@ class FitQuality:
     process_noise_ratio: float | None = None
     """Kalman fit: the torque disturbance per sample its noise model assumes (chosen by likelihood) /
     RMS τ_ref [-]."""
+    remedies: tuple[str, ...] = ()
+    """What a new record would need, when a record without a load encoder leaves model error the predictor still
+    follows (a start in a wrong basin, typically): for the technician, not a reason; empty otherwise."""
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
         out["reasons"] = list(self.reasons)
+        out["remedies"] = list(self.remedies)
         return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in out.items()}
 
 

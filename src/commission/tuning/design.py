@@ -47,6 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
+from ..exceptions import IdentificationError
 from ..ident.twomass import TwoMassParameters, modes
 from .dynamics import resolve_dynamics
 from .identified import IdentifiedModel, read_identification
@@ -472,7 +473,11 @@ def _dynamics_notes(dyn: DriveDynamics) -> list[str]:
 def _design(facts: IdentifiedModel, opt: TuningOptions, description: Any | None) -> ControllerSettings:
     p = facts.parameters
     _check_params(p)
-    md = modes(p)
+    try:
+        md = modes(p)
+    except IdentificationError as err:  # the identification says so too (approximate); nothing to design for
+        raise IdentificationError(f"the identified model has no resonance to design against ({err}); "
+                                  "the identification's result.json is written") from err
     backlash = facts.backlash_detected and facts.epsilon_rad > math.radians(opt.backlash_threshold_deg)
     dyn = resolve_dynamics(facts, opt, description)
     fs = float(dyn.sample_rate_hz.value or opt.sample_rate_hz)
