@@ -112,7 +112,7 @@ def test_result_json_has_exactly_the_documented_keys() -> None:
     assert set(d["fit"]) == {"residual_ratio", "noise_floor_ratio", "spectral_flatness", "window_rms_p90_over_median",
                              "noise_limited", "approximate", "reasons", "cutoff_hz", "observer_bandwidth_hz",
                              "effective_samples", "converged", "interval_scale", "determined", "model_error",
-                             "innovation_rms", "process_noise_ratio"}
+                             "innovation_rms", "process_noise_ratio", "remedies"}
     assert set(d["two_mass_interval"]) == set(d["two_mass"]) == set(d["two_mass_relative_stderr"])
     lo, hi = d["measured_band_hz"]
     assert 0 < lo < 1.0 and 300.0 < hi <= 420.0  # the chirp's 0.1–400 Hz, to the bins' edge
