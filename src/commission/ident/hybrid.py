@@ -616,7 +616,7 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool
     """The estimate: prediction errors of the Kalman predictor of the whole state, from the torque-residual fit
     (``hedged``: :func:`commission.ident.estimator.kalman_fit`'s), again with every configured term when it
     needs a disturbance (``retry``)."""
-    from .estimator import kalman_fit
+    from .estimator import kalman_fit, kalman_resettled
     from .kalman import kalman_problem
     from .residual import motor_position_samples
 
@@ -654,6 +654,10 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool
     if unfitted:
         again = replace(again, coulomb_load_nm=run.encoders.coulomb_load_nm)  # type: ignore[union-attr]
     other = kalman_fit(kp, again, **kw)
+    if unfitted:
+        # started at the encoders' friction, its noise model was chosen far from where it ended
+        other = kalman_resettled(kp, other, epsilon_max_rad=eps_max, threads=run.opt.threads,
+                                 max_nfev=run.opt.max_fit_evaluations)
     added = len(candidates.names()) - len(pem.terms.names())
     best = other if _pays_for(kp, pem, other, added) else pem
     return replace(best, evaluations=pem.evaluations + other.evaluations)
