@@ -17,7 +17,7 @@ from scipy.interpolate import CubicSpline
 
 from commission.config import ExcitationConfig
 from commission.excitation import chirp
-from commission.ident.estimator import ModelTerms, PemFit, kalman_fit
+from commission.ident.estimator import ModelTerms, PemFit, kalman_fit, kalman_resettled
 from commission.ident.kalman import innovations, kalman_problem, position_step_rad
 from commission.ident.twomass import REFERENCE_PLANT, TwoMassParameters, modes
 from sim_drive.plant import Plant, PlantParameters
@@ -179,6 +179,41 @@ def test_the_estimator_recovers_a_plant_from_a_start_ten_percent_off() -> None:
     for name in ("J_m", "J_l", "K"):
         assert abs(math.log(getattr(p, name) / getattr(true, name))) <= 4 * fit.stderr("ln " + name) + 1e-4, name
     assert fit.innovations is not None and _rms(fit.innovations.normalized) < 1.3
+
+
+def test_an_estimate_judged_at_a_wrong_noise_model_is_judged_again_at_its_own() -> None:
+    """An estimate at the true plant whose prediction errors were computed assuming a torque disturbance
+    of 10 % of RMS τ_ref (where a fit started far away chose its noise model) makes the record less likely
+    than it does with the disturbance simulated (0.1 %): chosen again, the noise model is near the simulated
+    one, the record is more likely, and the estimate stays at the truth. At its own noise model it is kept."""
+    fs = 4000.0
+    true = REFERENCE_PLANT
+    tau, r = _record(fs, 4.0, encoder_bits_motor=19, torque_noise_nm=2e-4, seed=5)
+    kp = kalman_problem(tau, r.motor_position, fs)
+    eps = math.radians(0.4)
+
+    def judged_at(level: float) -> PemFit:
+        inn = innovations(kp, true, eps, process_noise_nm=level * kp.torque_rms_nm)
+        return PemFit(parameters=true, epsilon_rad=eps, coulomb_motor_nm=0.0, coulomb_load_nm=0.0, lag_s=0.0,
+                      terms=ModelTerms(), residual=np.zeros(1), cost_nm=math.nan, names=(),
+                      covariance=np.zeros((0, 0)), n_effective=1.0, evaluations=0, converged=True, message="",
+                      process_noise_nm=level * kp.torque_rms_nm, load_share=0.3, innovations=inn)
+
+    wrong = judged_at(0.1)
+    again = kalman_resettled(kp, wrong, epsilon_max_rad=math.radians(2.0), threads=2, max_nfev=30)
+    assert again.innovations is not None and wrong.innovations is not None
+    assert again.innovations.negative_log_likelihood() < wrong.innovations.negative_log_likelihood() - 0.5
+    simulated = 2e-4 / kp.torque_rms_nm
+    assert simulated / 3 < again.process_noise_nm / kp.torque_rms_nm < 3 * simulated
+    for name in ("J_m", "J_l", "K"):
+        assert getattr(again.parameters, name) == pytest.approx(getattr(true, name), rel=0.01), name
+    assert math.degrees(again.epsilon_rad) == pytest.approx(0.4, abs=0.005)
+    assert again.evaluations > 0
+    # at the noise model it chose, a second pass finds nothing likelier to move to
+    settled = kalman_resettled(kp, again, epsilon_max_rad=math.radians(2.0), threads=2, max_nfev=30)
+    assert settled.innovations is not None
+    assert settled.innovations.negative_log_likelihood() <= again.innovations.negative_log_likelihood()
+    assert settled.parameters.K == pytest.approx(again.parameters.K, rel=1e-3)
 
 
 def test_a_start_is_read_off_the_frequency_responses_shape_when_no_rational_fit_gives_one() -> None:
