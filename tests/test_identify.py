@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -220,6 +221,12 @@ def test_a_fit_that_explains_nothing_claims_no_precision() -> None:
                       names=names, covariance=np.eye(7) * 1e-10, n_effective=4000.0, evaluations=10,
                       converged=True, message="", process_noise_nm=disturbance_nm, innovations=inn)
 
+    # a fit without the parameters' coordinates bounds none of them: said in words, never as "±nan %"
+    bare = assess(replace(fit_with(1.0), names=("eps_deg",), covariance=np.eye(1) * 1e-10), torque_rms_nm=0.1,
+                  sample_rate_hz=8000.0)
+    assert bare.approximate and not any("±nan" in r or "±inf" in r for r in bare.reasons)
+    assert any("does not determine J_m or J_l or K" in r for r in bare.reasons), bare.reasons
+    assert any("does not determine the resonance frequency" in r for r in bare.reasons), bare.reasons
     lost = assess(fit_with(300.0), torque_rms_nm=0.1, sample_rate_hz=8000.0)
     assert not lost.determined and lost.approximate
     assert any("unbounded" in r for r in lost.reasons)

@@ -22,6 +22,7 @@ An approximate result is still a result: result.json and the report are written 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -95,22 +96,30 @@ def _interval_reasons(fit: PemFit) -> list[str]:
     tolerance = max(EPSILON_TOLERANCE_DEG, RELATIVE_TOLERANCE * eps_deg)
     half = 1.96 * fit.stderr("eps_deg")
     if not half <= tolerance:
-        reasons.append(f"the record determines ε only to ±{half:.3g}° (95 %)")
+        reasons.extend(_undetermined({"ε": half}, lambda h: f"{h:.3g}°"))
     elif fit.epsilon_profile_deg is not None:
         # the likelihood ratio on ε's rugged profile: a profile flat past the polished span is no bound
         lo, hi = fit.epsilon_profile_deg
         if not max(eps_deg - lo, hi - eps_deg) <= tolerance:
             reasons.append(f"the record bounds ε only to [{lo:.3g}°, {hi:.3g}°] (95 %, likelihood ratio)")
-    wide = [n for n in ("J_m", "J_l", "K") if not 1.96 * fit.stderr("ln " + n) <= RELATIVE_TOLERANCE]
-    if wide:
-        reasons.append("the record determines " + ", ".join(
-            f"{n} only to ±{100 * 1.96 * fit.stderr('ln ' + n):.2g} %" for n in wide) + " (95 %)")
-    mode_half = {k: 1.96 * v for k, v in mode_stderr(fit).items()}
-    wide_modes = [k for k, h in mode_half.items() if not h <= MODE_TOLERANCE]
-    if wide_modes:
-        reasons.append("the record determines " + ", ".join(
-            f"the {k} frequency only to ±{100 * mode_half[k]:.2g} %" for k in wide_modes) + " (95 %)")
+    halves = {n: 1.96 * fit.stderr("ln " + n) for n in ("J_m", "J_l", "K")}
+    reasons.extend(_undetermined({n: h for n, h in halves.items() if not h <= RELATIVE_TOLERANCE}, _percent))
+    mode_half = {f"the {k} frequency": 1.96 * v for k, v in mode_stderr(fit).items()}
+    reasons.extend(_undetermined({k: h for k, h in mode_half.items() if not h <= MODE_TOLERANCE}, _percent))
     return reasons
+
+
+def _percent(relative: float) -> str:
+    return f"{100 * relative:.2g} %"
+
+
+def _undetermined(halves: dict[str, float], form: Callable[[float], str]) -> list[str]:
+    """Reasons for quantities whose 95 % half-widths (``form`` writes one) exceed their tolerance: one for
+    those the record bounds, one for those it does not bound at all (no finite interval, or no mode)."""
+    wide = [f"{n} only to ±{form(h)}" for n, h in halves.items() if math.isfinite(h)]
+    unknown = [n for n, h in halves.items() if not math.isfinite(h)]
+    return ([f"the record determines {', '.join(wide)} (95 %)"] if wide else []) + (
+        [f"the record does not determine {' or '.join(unknown)}"] if unknown else [])
 
 
 #: RMS of the Kalman predictor's normalized prediction errors e/√S above which the model does not
