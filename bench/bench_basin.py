@@ -1,0 +1,158 @@
+"""The estimator's basin on the plant family (issue 22): how far off a start it recovers a plant from.
+
+For each member, the Kalman prediction-error fit (``commission.ident.estimator.kalman_fit``, the
+identifier's estimate) is started from the member's true plant with J_m, J_l and K moved by ± an
+offset, one start each way — (1+o, 1−o, 1+o) and (1−o, 1+o, 1−o), D by the square root of K's
+factor; ε, the friction and the current loop at their true values with their terms on — and judged
+by bench_family's tolerances. No start stage, no scan, no torque-residual fit: what is measured is
+the estimator alone, the part the issue asks to be "right by construction", on the records it will
+get. Printed per member and start: recovered or not, the estimate's errors, the disturbance its
+noise model needs, time; then the share recovered per offset by sensors and by K·ε/A (the shaft
+torque that closes the gap against the chirp's amplitude: above ~3 the gear rattles through the
+record, bench/results/family.md).
+
+    python bench/bench_basin.py                                  # 8 members of seed 22, offset 0.1, ~5 min
+    python bench/bench_basin.py --seed 24 --only 0,43,49 --offsets 0.03,0.1,0.3 --jobs 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import multiprocessing
+import os
+import sys
+import time
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+from bench_family import judge, label, options_for
+
+from commission.exceptions import IdentificationError
+from commission.ident.estimator import ModelTerms, PemFit, kalman_fit
+from commission.ident.kalman import kalman_problem
+from commission.ident.residual import motor_position_samples
+from commission.ident.twomass import modes
+from sim_drive.family import DEFAULT_SEED, Sensors, member
+
+#: The default members: seed 22's first eight (every sensor set, both sides of K·ε/A = 3).
+DEFAULT_ONLY = "0,1,2,3,4,5,6,7"
+#: K·ε/A above which a motor-side record rattles through the gap (bench/results/family.md, seed 22 and 24).
+RATTLE = 3.0
+
+
+def start_from(m: Any, offset: float, sign: int) -> PemFit:
+    """The member's true plant moved by ``offset``: J_m, K by (1 + sign·offset), J_l the other way."""
+    up, down = 1.0 + sign * offset, 1.0 - sign * offset
+    p = m.two_mass
+    moved = replace(p, J_m=p.J_m * up, J_l=p.J_l * down, K=p.K * up, D=p.D * math.sqrt(up))
+    lag = 1.0 / (2.0 * math.pi * m.current_loop_bandwidth_hz) if m.current_loop_bandwidth_hz else 0.0
+    terms = ModelTerms(coulomb_motor=m.coulomb_motor_nm > 0, coulomb_load=m.coulomb_load_nm > 0, current_loop=lag > 0)
+    # only the coordinates are read from a start (its residual, covariance and the like are the fit's own)
+    return PemFit(moved, math.radians(m.epsilon_deg), m.coulomb_motor_nm, m.coulomb_load_nm, lag, terms,
+                  np.zeros(0), math.nan, (), np.zeros((0, 0)), math.nan, 0, False, "a start")
+
+
+def rattle(m: Any) -> float:
+    """K·ε/A: the shaft torque at a twist of ε against the chirp's amplitude [-]."""
+    return m.two_mass.K * math.radians(m.epsilon_deg) / m.excitation.amplitude_nm
+
+
+def evaluate(args: tuple[int, int, float, int]) -> dict[str, Any]:
+    """One member, one start: the fit's errors, within tolerance or not, its time [s]."""
+    seed, index, offset, sign = args
+    m = member(seed, index)
+    rec = m.simulate()
+    opt = options_for(m)
+    fs = rec.sample_rate_hz
+    kp = kalman_problem(rec.torque_ref, motor_position_samples(rec.motor_position, rec.motor_velocity, fs), fs,
+                        load_position=rec.load_position if opt.use_load_encoder else None,
+                        velocity_scale_rad_s=opt.coulomb_velocity_scale_rad_s)
+    t0 = time.perf_counter()
+    fit = kalman_fit(kp, start_from(m, offset, sign), threads=opt.threads, max_nfev=opt.max_fit_evaluations,
+                     epsilon_max_rad=math.radians(max(4.0 * m.epsilon_deg, 2.0 * opt.epsilon_bounds_deg[1])))
+    seconds = time.perf_counter() - t0
+    p = fit.parameters
+    est = {**p.as_dict(), "epsilon_deg": math.degrees(fit.epsilon_rad)}
+    try:
+        md = modes(p)
+        est.update(f_resonance_hz=md.f_resonance_hz, f_antiresonance_hz=md.f_antiresonance_hz)
+    except IdentificationError:  # an estimate with no resonance: its modes are out of tolerance
+        est.update(f_resonance_hz=math.nan, f_antiresonance_hz=math.nan)
+    j = judge(m.to_dict(), est)
+    return {"id": m.id, "index": index, "offset": offset, "sign": sign, "label": label(m),
+            "sensors": m.sensors.value, "rattle": rattle(m), "within": all(j["within"].values()),
+            "errors": j["errors"], "disturbance": fit.process_noise_nm / kp.torque_rms_nm, "time_s": seconds}
+
+
+def _line(r: dict[str, Any]) -> str:
+    e = r["errors"]
+    mark = "recovered" if r["within"] else "NOT recovered"
+    return (f"  {r['id']} {'+' if r['sign'] > 0 else '−'}{r['offset']:g}  {mark:<13} ε {e['epsilon_deg']:+.4f}°  "
+            f"J_m {100 * e['J_m']:+6.2f} %  J_l {100 * e['J_l']:+6.2f} %  K {100 * e['K']:+6.2f} %  "
+            f"disturbance {100 * r['disturbance']:.2g} %  {r['time_s']:5.1f} s")
+
+
+def _group(r: dict[str, Any]) -> str:
+    if r["sensors"] == Sensors.LOAD_ENCODER.value:
+        return "load encoder"
+    return f"{'motor side' if r['sensors'] == Sensors.MOTOR.value else 'velocity only'}, K·ε/A {'>' if r['rattle'] > RATTLE else '≤'} {RATTLE:g}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=DEFAULT_SEED, help=f"family seed (default {DEFAULT_SEED})")
+    ap.add_argument("--only", default=DEFAULT_ONLY, help=f"comma-separated member indices (default {DEFAULT_ONLY})")
+    ap.add_argument("--offsets", default="0.1", help="comma-separated relative offsets of J_m, J_l, K (default 0.1)")
+    ap.add_argument("--jobs", type=int, default=1, help="processes (>1: times are then not representative)")
+    args = ap.parse_args(argv)
+    try:
+        indices = sorted({int(s) for s in args.only.split(",")})
+        offsets = sorted({float(s) for s in args.offsets.split(",")})
+    except ValueError:
+        ap.error("--only takes integers, --offsets numbers, comma-separated")
+    if args.jobs < 1 or not all(0.0 < o < 1.0 for o in offsets):
+        ap.error("--jobs must be ≥ 1 and each offset in (0, 1)")
+    timing = "sequential" if args.jobs == 1 else f"{args.jobs} processes: NOT representative"
+    print(f"# estimator basin, family seed {args.seed}, members {','.join(map(str, indices))}, offsets "
+          f"{', '.join(f'±{o:g}' for o in offsets)}; {timing}; load average {os.getloadavg()[0]:.1f} on "
+          f"{os.cpu_count()} cores")
+    tasks = [(args.seed, i, o, s) for i in indices for o in offsets for s in (1, -1)]
+    rows: list[dict[str, Any]] = []
+    labels: dict[str, str] = {}
+    with multiprocessing.get_context("spawn").Pool(args.jobs) if args.jobs > 1 else _Inline() as pool:
+        for r in pool.imap(evaluate, tasks):
+            if r["id"] not in labels:
+                labels[r["id"]] = r["label"]
+                print(f"{r['id']}  {r['label']}, K·ε/A {r['rattle']:.2g}", flush=True)
+            rows.append(r)
+            print(_line(r), flush=True)
+    print("\nrecovered (within bench_family's tolerances), by class and offset:")
+    for g in sorted({_group(r) for r in rows}):
+        cells = []
+        for o in offsets:
+            sel = [r for r in rows if _group(r) == g and r["offset"] == o]
+            cells.append(f"±{o:g}: {sum(r['within'] for r in sel)} of {len(sel)}")
+        print(f"  {g:<32} " + "   ".join(cells))
+    times = [r["time_s"] for r in rows]
+    print(f"time per fit [s] ({timing}): median {np.median(times):.1f}, max {max(times):.1f}")
+    return 0
+
+
+class _Inline:
+    """The pool's imap in this process (``--jobs 1``: times without another process beside them)."""
+
+    def __enter__(self) -> _Inline:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+    @staticmethod
+    def imap(f: Any, tasks: list[Any]) -> Any:
+        return map(f, tasks)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
