@@ -23,6 +23,7 @@ import multiprocessing
 import os
 import sys
 import time
+from contextlib import nullcontext
 from dataclasses import replace
 from typing import Any
 
@@ -121,8 +122,9 @@ def main(argv: list[str] | None = None) -> int:
     tasks = [(args.seed, i, o, s) for i in indices for o in offsets for s in (1, -1)]
     rows: list[dict[str, Any]] = []
     labels: dict[str, str] = {}
-    with multiprocessing.get_context("spawn").Pool(args.jobs) if args.jobs > 1 else _Inline() as pool:
-        for r in pool.imap(evaluate, tasks):
+    # --jobs 1: in this process, the times without another process beside them
+    with multiprocessing.get_context("spawn").Pool(args.jobs) if args.jobs > 1 else nullcontext() as pool:
+        for r in (pool.imap(evaluate, tasks) if pool is not None else map(evaluate, tasks)):
             if r["id"] not in labels:
                 labels[r["id"]] = r["label"]
                 print(f"{r['id']}  {r['label']}, K·ε/A {r['rattle']:.2g}", flush=True)
@@ -138,20 +140,6 @@ def main(argv: list[str] | None = None) -> int:
     times = [r["time_s"] for r in rows]
     print(f"time per fit [s] ({timing}): median {np.median(times):.1f}, max {max(times):.1f}")
     return 0
-
-
-class _Inline:
-    """The pool's imap in this process (``--jobs 1``: times without another process beside them)."""
-
-    def __enter__(self) -> _Inline:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        return None
-
-    @staticmethod
-    def imap(f: Any, tasks: list[Any]) -> Any:
-        return map(f, tasks)
 
 
 if __name__ == "__main__":
