@@ -11,8 +11,14 @@ noise model needs, time; then the share recovered per offset by sensors and by K
 torque that closes the gap against the chirp's amplitude: above ~3 the gear rattles through the
 record, bench/results/family.md).
 
+``--search powell`` measures a derivative-free descent on the same likelihood instead (the estimator's
+finite-difference steps see a likelihood that is rugged at their scale on the rattling records):
+Powell's conjugate directions on the Cauchy likelihood of (ln J_m, ln J_l, ln K, ln D, ln ε), the other
+coordinates held at the start's, over a continuation in the torque disturbance (``POWELL_LEVELS``).
+
     python bench/bench_basin.py                                  # 8 members of seed 22, offset 0.1, ~5 min
     python bench/bench_basin.py --seed 24 --only 0,43,49 --offsets 0.03,0.1,0.3 --jobs 2
+    python bench/bench_basin.py --seed 24 --only 2,8,49 --search powell --jobs 2
 """
 
 from __future__ import annotations
@@ -31,16 +37,24 @@ import numpy as np
 from bench_family import judge, label, options_for
 
 from commission.exceptions import IdentificationError
-from commission.ident.estimator import ModelTerms, PemFit, kalman_fit
+from commission.ident.estimator import ModelTerms, PemFit, _coordinates, _KalmanObjective, kalman_fit
 from commission.ident.kalman import kalman_problem
 from commission.ident.residual import motor_position_samples
-from commission.ident.twomass import modes
+from commission.ident.twomass import TwoMassParameters, modes
 from sim_drive.family import DEFAULT_SEED, Sensors, member
 
 #: The default members: seed 22's first eight (every sensor set, both sides of K·ε/A = 3).
 DEFAULT_ONLY = "0,1,2,3,4,5,6,7"
 #: K·ε/A above which a motor-side record rattles through the gap (bench/results/family.md, seed 22 and 24).
 RATTLE = 3.0
+#: ``--search powell``: the torque disturbances (relative to RMS τ_ref) of the noise model the descent is
+#: run at in turn (a larger one smooths the likelihood), the evaluations at each, and the bound on each
+#: log-coordinate around the start (ln 10: a start a decade off is still inside).
+POWELL_LEVELS = (0.1, 0.03, 0.01)
+POWELL_EVALUATIONS = 300
+POWELL_SPAN = math.log(10.0)
+#: The Kalman objective's load share of the disturbance (``estimator._LOAD_SHARES``' larger one).
+LOAD_SHARE = 0.3
 
 
 def start_from(m: Any, offset: float, sign: int) -> PemFit:
@@ -60,9 +74,34 @@ def rattle(m: Any) -> float:
     return m.two_mass.K * math.radians(m.epsilon_deg) / m.excitation.amplitude_nm
 
 
-def evaluate(args: tuple[int, int, float, int]) -> dict[str, Any]:
+def powell_fit(kp: Any, start: PemFit, epsilon_max_rad: float) -> tuple[TwoMassParameters, float, float]:
+    """Powell's descent on the Cauchy prediction-error likelihood from ``start``, at each of
+    ``POWELL_LEVELS`` in turn: (plant, ε [rad], the last level's torque disturbance [N·m])."""
+    from scipy.optimize import minimize
+
+    free = [0, 1, 4, 5]  # ln J_m, ln J_l, ln K, ln D in the estimator's coordinates; ln ε appended
+    obj = _KalmanObjective(kp, start.terms, POWELL_LEVELS[0] * kp.torque_rms_nm, LOAD_SHARE, robust=True)
+    z0 = _coordinates(start, obj, epsilon_max_rad, kp.torque_rms_nm)[0]
+    eps_lo = math.log(1e-3)  # [ln deg]
+
+    def coordinates(y: np.ndarray) -> np.ndarray:
+        z = z0.copy()
+        z[free], z[6] = y[:4], math.exp(y[4])
+        return z
+
+    y = np.r_[z0[free], math.log(max(z0[6], math.exp(eps_lo)))]
+    bounds = [(v - POWELL_SPAN, v + POWELL_SPAN) for v in y[:4]] + [(eps_lo, math.log(math.degrees(epsilon_max_rad)))]
+    for level in POWELL_LEVELS:
+        obj = _KalmanObjective(kp, start.terms, level * kp.torque_rms_nm, LOAD_SHARE, robust=True)
+        y = minimize(lambda v: float(np.sum(obj(coordinates(v), remember=False) ** 2)), y, method="Powell",
+                     bounds=bounds, options={"maxfev": POWELL_EVALUATIONS, "xtol": 1e-3, "ftol": 1e-6}).x
+    p, eps, _ = obj.unpack(coordinates(y))
+    return p, eps, POWELL_LEVELS[-1] * kp.torque_rms_nm
+
+
+def evaluate(args: tuple[int, int, float, int, str]) -> dict[str, Any]:
     """One member, one start: the fit's errors, within tolerance or not, its time [s]."""
-    seed, index, offset, sign = args
+    seed, index, offset, sign, search = args
     m = member(seed, index)
     rec = m.simulate()
     opt = options_for(m)
@@ -70,12 +109,16 @@ def evaluate(args: tuple[int, int, float, int]) -> dict[str, Any]:
     kp = kalman_problem(rec.torque_ref, motor_position_samples(rec.motor_position, rec.motor_velocity, fs), fs,
                         load_position=rec.load_position if opt.use_load_encoder else None,
                         velocity_scale_rad_s=opt.coulomb_velocity_scale_rad_s)
+    epsilon_max_rad = math.radians(max(4.0 * m.epsilon_deg, 2.0 * opt.epsilon_bounds_deg[1]))
     t0 = time.perf_counter()
-    fit = kalman_fit(kp, start_from(m, offset, sign), threads=opt.threads, max_nfev=opt.max_fit_evaluations,
-                     epsilon_max_rad=math.radians(max(4.0 * m.epsilon_deg, 2.0 * opt.epsilon_bounds_deg[1])))
+    if search == "powell":
+        p, eps, disturbance_nm = powell_fit(kp, start_from(m, offset, sign), epsilon_max_rad)
+    else:
+        fit = kalman_fit(kp, start_from(m, offset, sign), threads=opt.threads, max_nfev=opt.max_fit_evaluations,
+                         epsilon_max_rad=epsilon_max_rad)
+        p, eps, disturbance_nm = fit.parameters, fit.epsilon_rad, fit.process_noise_nm
     seconds = time.perf_counter() - t0
-    p = fit.parameters
-    est = {**p.as_dict(), "epsilon_deg": math.degrees(fit.epsilon_rad)}
+    est = {**p.as_dict(), "epsilon_deg": math.degrees(eps)}
     try:
         md = modes(p)
         est.update(f_resonance_hz=md.f_resonance_hz, f_antiresonance_hz=md.f_antiresonance_hz)
@@ -84,7 +127,7 @@ def evaluate(args: tuple[int, int, float, int]) -> dict[str, Any]:
     j = judge(m.to_dict(), est)
     return {"id": m.id, "index": index, "offset": offset, "sign": sign, "label": label(m),
             "sensors": m.sensors.value, "rattle": rattle(m), "within": all(j["within"].values()),
-            "errors": j["errors"], "disturbance": fit.process_noise_nm / kp.torque_rms_nm, "time_s": seconds}
+            "errors": j["errors"], "disturbance": disturbance_nm / kp.torque_rms_nm, "time_s": seconds}
 
 
 def _line(r: dict[str, Any]) -> str:
@@ -107,6 +150,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default=DEFAULT_ONLY, help=f"comma-separated member indices (default {DEFAULT_ONLY})")
     ap.add_argument("--offsets", default="0.1", help="comma-separated relative offsets of J_m, J_l, K (default 0.1)")
     ap.add_argument("--jobs", type=int, default=1, help="processes (>1: times are then not representative)")
+    ap.add_argument("--search", choices=("kalman", "powell"), default="kalman",
+                    help="kalman: the identifier's estimator (kalman_fit, default); powell: a derivative-free "
+                         "descent on its likelihood (the disturbance printed is then the last level's)")
     args = ap.parse_args(argv)
     try:
         indices = sorted({int(s) for s in args.only.split(",")})
@@ -116,10 +162,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.jobs < 1 or not all(0.0 < o < 1.0 for o in offsets):
         ap.error("--jobs must be ≥ 1 and each offset in (0, 1)")
     timing = "sequential" if args.jobs == 1 else f"{args.jobs} processes: NOT representative"
-    print(f"# estimator basin, family seed {args.seed}, members {','.join(map(str, indices))}, offsets "
+    print(f"# estimator basin ({args.search}), family seed {args.seed}, members {','.join(map(str, indices))}, offsets "
           f"{', '.join(f'±{o:g}' for o in offsets)}; {timing}; load average {os.getloadavg()[0]:.1f} on "
           f"{os.cpu_count()} cores")
-    tasks = [(args.seed, i, o, s) for i in indices for o in offsets for s in (1, -1)]
+    tasks = [(args.seed, i, o, s, args.search) for i in indices for o in offsets for s in (1, -1)]
     rows: list[dict[str, Any]] = []
     labels: dict[str, str] = {}
     # --jobs 1: in this process, the times without another process beside them
