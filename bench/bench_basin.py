@@ -37,7 +37,7 @@ import numpy as np
 from bench_family import judge, label, options_for
 
 from commission.exceptions import IdentificationError
-from commission.ident.estimator import ModelTerms, PemFit, _coordinates, _KalmanObjective, kalman_fit
+from commission.ident.estimator import _LOAD_SHARES, ModelTerms, PemFit, _coordinates, _KalmanObjective, kalman_fit
 from commission.ident.kalman import kalman_problem
 from commission.ident.residual import motor_position_samples
 from commission.ident.twomass import TwoMassParameters, modes
@@ -53,8 +53,6 @@ RATTLE = 3.0
 POWELL_LEVELS = (0.1, 0.03, 0.01)
 POWELL_EVALUATIONS = 300
 POWELL_SPAN = math.log(10.0)
-#: The Kalman objective's load share of the disturbance (``estimator._LOAD_SHARES``' larger one).
-LOAD_SHARE = 0.3
 
 
 def start_from(m: Any, offset: float, sign: int) -> PemFit:
@@ -79,9 +77,11 @@ def powell_fit(kp: Any, start: PemFit, epsilon_max_rad: float) -> tuple[TwoMassP
     ``POWELL_LEVELS`` in turn: (plant, ε [rad], the last level's torque disturbance [N·m])."""
     from scipy.optimize import minimize
 
+    def objective(level: float) -> _KalmanObjective:  # (the estimator's load share: its larger one)
+        return _KalmanObjective(kp, start.terms, level * kp.torque_rms_nm, _LOAD_SHARES[-1], robust=True)
+
     free = [0, 1, 4, 5]  # ln J_m, ln J_l, ln K, ln D in the estimator's coordinates; ln ε appended
-    obj = _KalmanObjective(kp, start.terms, POWELL_LEVELS[0] * kp.torque_rms_nm, LOAD_SHARE, robust=True)
-    z0 = _coordinates(start, obj, epsilon_max_rad, kp.torque_rms_nm)[0]
+    z0 = _coordinates(start, objective(POWELL_LEVELS[0]), epsilon_max_rad, kp.torque_rms_nm)[0]
     eps_lo = math.log(1e-3)  # [ln deg]
 
     def coordinates(y: np.ndarray) -> np.ndarray:
@@ -92,7 +92,7 @@ def powell_fit(kp: Any, start: PemFit, epsilon_max_rad: float) -> tuple[TwoMassP
     y = np.r_[z0[free], math.log(max(z0[6], math.exp(eps_lo)))]
     bounds = [(v - POWELL_SPAN, v + POWELL_SPAN) for v in y[:4]] + [(eps_lo, math.log(math.degrees(epsilon_max_rad)))]
     for level in POWELL_LEVELS:
-        obj = _KalmanObjective(kp, start.terms, level * kp.torque_rms_nm, LOAD_SHARE, robust=True)
+        obj = objective(level)
         y = minimize(lambda v: float(np.sum(obj(coordinates(v), remember=False) ** 2)), y, method="Powell",
                      bounds=bounds, options={"maxfev": POWELL_EVALUATIONS, "xtol": 1e-3, "ftol": 1e-6}).x
     p, eps, _ = obj.unpack(coordinates(y))
