@@ -14,11 +14,14 @@ record, bench/results/family.md).
 ``--search powell`` measures a derivative-free descent on the same likelihood instead (the estimator's
 finite-difference steps see a likelihood that is rugged at their scale on the rattling records):
 Powell's conjugate directions on the Cauchy likelihood of (ln J_m, ln J_l, ln K, ln D, ln ε), the other
-coordinates held at the start's, over a continuation in the torque disturbance (``POWELL_LEVELS``).
+coordinates held at the start's, over a continuation in the torque disturbance (``POWELL_LEVELS``), with
+the estimator's larger load share of it or ``--load-share`` (a larger share makes the predictor take the
+load's state more from the record: a smoother likelihood on records with few contacts per cycle).
 
     python bench/bench_basin.py                                  # 8 members of seed 22, offset 0.1, ~5 min
     python bench/bench_basin.py --seed 24 --only 0,43,49 --offsets 0.03,0.1,0.3 --jobs 2
     python bench/bench_basin.py --seed 24 --only 2,8,49 --search powell --jobs 2
+    python bench/bench_basin.py --seed 24 --only 2,8,49 --search powell --load-share 3 --jobs 2
 """
 
 from __future__ import annotations
@@ -72,13 +75,15 @@ def rattle(m: Any) -> float:
     return m.two_mass.K * math.radians(m.epsilon_deg) / m.excitation.amplitude_nm
 
 
-def powell_fit(kp: Any, start: PemFit, epsilon_max_rad: float) -> tuple[TwoMassParameters, float, float]:
+def powell_fit(kp: Any, start: PemFit, epsilon_max_rad: float,
+               load_share: float = _LOAD_SHARES[-1]) -> tuple[TwoMassParameters, float, float]:
     """Powell's descent on the Cauchy prediction-error likelihood from ``start``, at each of
-    ``POWELL_LEVELS`` in turn: (plant, ε [rad], the last level's torque disturbance [N·m])."""
+    ``POWELL_LEVELS`` in turn, ``load_share`` of the disturbance on the load (default: the estimator's
+    larger share): (plant, ε [rad], the last level's torque disturbance [N·m])."""
     from scipy.optimize import minimize
 
-    def objective(level: float) -> _KalmanObjective:  # (the estimator's load share: its larger one)
-        return _KalmanObjective(kp, start.terms, level * kp.torque_rms_nm, _LOAD_SHARES[-1], robust=True)
+    def objective(level: float) -> _KalmanObjective:
+        return _KalmanObjective(kp, start.terms, level * kp.torque_rms_nm, load_share, robust=True)
 
     free = [0, 1, 4, 5]  # ln J_m, ln J_l, ln K, ln D in the estimator's coordinates; ln ε appended
     z0 = _coordinates(start, objective(POWELL_LEVELS[0]), epsilon_max_rad, kp.torque_rms_nm)[0]
@@ -99,9 +104,9 @@ def powell_fit(kp: Any, start: PemFit, epsilon_max_rad: float) -> tuple[TwoMassP
     return p, eps, POWELL_LEVELS[-1] * kp.torque_rms_nm
 
 
-def evaluate(args: tuple[int, int, float, int, str]) -> dict[str, Any]:
+def evaluate(args: tuple[int, int, float, int, str, float]) -> dict[str, Any]:
     """One member, one start: the fit's errors, within tolerance or not, its time [s]."""
-    seed, index, offset, sign, search = args
+    seed, index, offset, sign, search, load_share = args
     m = member(seed, index)
     rec = m.simulate()
     opt = options_for(m)
@@ -112,7 +117,7 @@ def evaluate(args: tuple[int, int, float, int, str]) -> dict[str, Any]:
     epsilon_max_rad = math.radians(max(4.0 * m.epsilon_deg, 2.0 * opt.epsilon_bounds_deg[1]))
     t0 = time.perf_counter()
     if search == "powell":
-        p, eps, disturbance_nm = powell_fit(kp, start_from(m, offset, sign), epsilon_max_rad)
+        p, eps, disturbance_nm = powell_fit(kp, start_from(m, offset, sign), epsilon_max_rad, load_share)
     else:
         fit = kalman_fit(kp, start_from(m, offset, sign), threads=opt.threads, max_nfev=opt.max_fit_evaluations,
                          epsilon_max_rad=epsilon_max_rad)
@@ -153,19 +158,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--search", choices=("kalman", "powell"), default="kalman",
                     help="kalman: the identifier's estimator (kalman_fit, default); powell: a derivative-free "
                          "descent on its likelihood (the disturbance printed is then the last level's)")
+    ap.add_argument("--load-share", type=float, default=_LOAD_SHARES[-1],
+                    help=f"--search powell: the load's share of the torque disturbance (default {_LOAD_SHARES[-1]:g}, "
+                         "the estimator's larger one)")
     args = ap.parse_args(argv)
     try:
         indices = sorted({int(s) for s in args.only.split(",")})
         offsets = sorted({float(s) for s in args.offsets.split(",")})
     except ValueError:
         ap.error("--only takes integers, --offsets numbers, comma-separated")
-    if args.jobs < 1 or not all(0.0 < o < 1.0 for o in offsets):
-        ap.error("--jobs must be ≥ 1 and each offset in (0, 1)")
+    if args.jobs < 1 or not all(0.0 < o < 1.0 for o in offsets) or not args.load_share >= 0.0:
+        ap.error("--jobs must be ≥ 1, each offset in (0, 1) and --load-share ≥ 0")
+    if args.search != "powell" and args.load_share != _LOAD_SHARES[-1]:
+        ap.error("--load-share applies to --search powell (kalman_fit chooses its own)")
     timing = "sequential" if args.jobs == 1 else f"{args.jobs} processes: NOT representative"
-    print(f"# estimator basin ({args.search}), family seed {args.seed}, members {','.join(map(str, indices))}, offsets "
+    search = args.search + (f", load share {args.load_share:g}" if args.search == "powell" else "")
+    print(f"# estimator basin ({search}), family seed {args.seed}, members {','.join(map(str, indices))}, offsets "
           f"{', '.join(f'±{o:g}' for o in offsets)}; {timing}; load average {os.getloadavg()[0]:.1f} on "
           f"{os.cpu_count()} cores")
-    tasks = [(args.seed, i, o, s, args.search) for i in indices for o in offsets for s in (1, -1)]
+    tasks = [(args.seed, i, o, s, args.search, args.load_share) for i in indices for o in offsets for s in (1, -1)]
     rows: list[dict[str, Any]] = []
     labels: dict[str, str] = {}
     # --jobs 1: in this process, the times without another process beside them
