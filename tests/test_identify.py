@@ -248,6 +248,18 @@ def test_a_fit_that_explains_nothing_claims_no_precision() -> None:
     assert any("load encoder" in r for r in assess(fit_with(1.0, disturbance_nm=0.02), **side).remedies)
     assert assess(fit_with(1.0, disturbance_nm=0.0025), **side).remedies
     assert not assess(fit_with(1.0), **side).remedies and not assess(fit_with(300.0), **side).remedies
+    # the chirp's end is named where the record's band stops below 3.5× the estimate's resonance, and only there
+    end_hz = 3.5 * modes(REFERENCE_PLANT).f_resonance_hz
+    short = assess(fit_with(1.0, disturbance_nm=0.02), **side, band_top_hz=0.6 * end_hz).remedies
+    assert any("load encoder" in r for r in short)
+    assert any(f"end the chirp at {end_hz:.0f} Hz or more" in r and "sample rate of" not in r for r in short), short
+    wide = assess(fit_with(1.0, disturbance_nm=0.02), **side, band_top_hz=1.2 * end_hz).remedies
+    assert wide == assess(fit_with(1.0, disturbance_nm=0.02), **side).remedies
+    assert not any(f"{end_hz:.0f} Hz" in r for r in wide) and any("3.5× the resonance" in r for r in wide)
+    # beyond the band a record at this sample rate can fit: the sample rate that reaches it is named too
+    slow = assess(fit_with(1.0, disturbance_nm=0.02), torque_rms_nm=0.1, sample_rate_hz=400.0, load_encoder=False,
+                  band_top_hz=150.0).remedies
+    assert any(f"sample rate of {end_hz / 0.45:.0f} Hz or more" in r for r in slow), slow
 
 
 def test_a_gap_whose_likelihood_is_flat_past_the_polished_span_is_flagged_not_reported_as_known() -> None:

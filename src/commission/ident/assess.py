@@ -32,6 +32,7 @@ from scipy.signal import welch
 from ..exceptions import IdentificationError
 from .estimator import PARAMETER_NAMES, PemFit
 from .result import FitQuality
+from .start import BAND_TOP_PER_SAMPLE_RATE
 from .twomass import TwoMassParameters, modes
 
 __all__ = ["assess", "mode_stderr", "whiteness"]
@@ -144,12 +145,17 @@ DISTURBANCE_SUSPECT = 0.02
 #: start lies in a wrong basin; a load encoder's start does not (README, Known limits; bench/results/family.md).
 MOTOR_SIDE_REMEDIES = ("record with a load encoder: the start then comes from both encoders' equations of motion",
                        "end the chirp at 3.5× the resonance or more (excitation.f_end_hz), within the sample rate")
+#: The chirp's end, in resonances, from which wide-gap motor-side records mostly start in the gap's basin
+#: (bench/results/family.md: 7 of 14 such records flagged above it, 26 of 30 below).
+CHIRP_END_PER_RESONANCE = 3.5
 
 
-def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float, load_encoder: bool = True) -> FitQuality:
+def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float, load_encoder: bool = True,
+           band_top_hz: float | None = None) -> FitQuality:
     """The quality of the estimate (:func:`commission.ident.estimator.kalman_fit`; see the module docstring).
     ``load_encoder``: whether the record had one (without, a fit that leaves model error but follows the record
-    names what a new record needs, ``FitQuality.remedies``)."""
+    names what a new record needs, ``FitQuality.remedies``); ``band_top_hz``: where the record's torque stops
+    exciting [Hz] (None: unknown), which lets a remedy name the chirp's end a new record needs."""
     inn = fit.innovations
     if inn is None:
         return _unevaluated(fit, torque_rms_nm, sample_rate_hz)
@@ -194,8 +200,29 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float, load_enc
                       observer_bandwidth_hz=0.0, effective_samples=fit.n_effective, converged=fit.converged,
                       interval_scale=scale, model_error=bool(misfit or not determined), determined=determined,
                       innovation_rms=level, process_noise_ratio=disturbance,
-                      remedies=(MOTOR_SIDE_REMEDIES if misfit and level < INNOVATION_UNDETERMINED and not load_encoder
-                                else ()))
+                      remedies=(_remedies(fit.parameters, band_top_hz, sample_rate_hz)
+                                if misfit and level < INNOVATION_UNDETERMINED and not load_encoder else ()))
+
+
+def _remedies(estimate: TwoMassParameters, band_top_hz: float | None, sample_rate_hz: float) -> tuple[str, ...]:
+    """What a new motor-side record needs: a load encoder, or a chirp ending at ``CHIRP_END_PER_RESONANCE``× the
+    resonance. The chirp's end is named only where this record's band stops below that multiple of the
+    estimate's resonance: a flagged estimate puts the resonance up to 77 % low but at most 3 % high (family
+    seeds 22–24), so the frequency it gives is a floor, which a band above it says nothing about."""
+    try:
+        resonance_hz = modes(estimate).f_resonance_hz
+    except IdentificationError:
+        resonance_hz = math.nan
+    end_hz = CHIRP_END_PER_RESONANCE * resonance_hz
+    if band_top_hz is None or not band_top_hz < end_hz:
+        return MOTOR_SIDE_REMEDIES
+    chirp = (f"end the chirp at {end_hz:.0f} Hz or more (excitation.f_end_hz): {CHIRP_END_PER_RESONANCE:g}× the "
+             f"resonance this estimate puts at {resonance_hz:.0f} Hz, where this record's torque stops near "
+             f"{band_top_hz:.0f} Hz")
+    rate_hz = end_hz / BAND_TOP_PER_SAMPLE_RATE
+    if rate_hz > sample_rate_hz:
+        chirp += f", at a sample rate of {rate_hz:.0f} Hz or more"
+    return MOTOR_SIDE_REMEDIES[0], chirp
 
 
 def _unevaluated(fit: PemFit, torque_rms_nm: float, sample_rate_hz: float) -> FitQuality:

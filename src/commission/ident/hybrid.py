@@ -103,7 +103,7 @@ def _check_recording(rec: Recording, opt: IdentificationOptions) -> None:
 def _band(rec: Recording, opt: IdentificationOptions, notes: list[str]) -> tuple[tuple[float, float], float]:
     """The FRD's band and resolution for this record: the configured band (default: up to the top
     of the band the torque excites), at the resolution the record's length allows."""
-    from .start import excited_band_hz
+    from .start import BAND_TOP_PER_SAMPLE_RATE, excited_band_hz
 
     fs = rec.sample_rate_hz
     resolution = max(opt.resolution_hz, fs / len(rec))
@@ -113,7 +113,7 @@ def _band(rec: Recording, opt: IdentificationOptions, notes: list[str]) -> tuple
     if opt.band_hz is not None:
         lo, hi = opt.band_hz
     else:
-        lo, hi = 0.0, min(excited_band_hz(rec.torque_ref, fs), 0.45 * fs)
+        lo, hi = 0.0, min(excited_band_hz(rec.torque_ref, fs), BAND_TOP_PER_SAMPLE_RATE * fs)
     lo = max(lo, resolution)
     if hi <= lo + 4 * resolution:
         raise IdentificationError(f"the torque excites no band to identify (up to {hi:.3g} Hz at "
@@ -667,9 +667,11 @@ def _check_stage(run: _Run, cell: Any, pem: PemFit) -> tuple[FitQuality, list[di
     """The estimate's quality, and the paper's step 5 for the start and the result."""
     from .assess import assess
     from .frd import estimate_frd
+    from .start import excited_band_hz
 
     rec, fs = run.rec, run.fs
-    quality = assess(pem, torque_rms_nm=_torque_rms(run), sample_rate_hz=fs, load_encoder=run.use_load)
+    quality = assess(pem, torque_rms_nm=_torque_rms(run), sample_rate_hz=fs, load_encoder=run.use_load,
+                     band_top_hz=excited_band_hz(rec.torque_ref, fs))
     run.notes.extend(f"approximate result: {r}" for r in quality.reasons)
     if quality.noise_limited:
         run.notes.append(f"the model leaves {100 * quality.residual_ratio:.2f} % of the torque unexplained, but as "

@@ -39,6 +39,8 @@ _RAISED_EDGES_HZ = (1.0, 5.0, 10.0)
 _HIGH_EDGE_HZ = 20.0
 #: The chirp's band ends where its smoothed spectrum falls below this fraction of its median.
 _BAND_EDGE_LEVEL = 0.1
+#: The top of the band the identifier fits, as a share of the sample rate.
+BAND_TOP_PER_SAMPLE_RATE = 0.45
 
 
 @dataclass(frozen=True)
