@@ -207,8 +207,8 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float, load_enc
 def _remedies(estimate: TwoMassParameters, band_top_hz: float | None, sample_rate_hz: float) -> tuple[str, ...]:
     """What a new motor-side record needs: a load encoder, or a chirp ending at ``CHIRP_END_PER_RESONANCE``× the
     resonance. The chirp's end is named only where this record's band stops below that multiple of the
-    estimate's resonance: a flagged estimate puts the resonance up to 77 % low but at most 3 % high (family
-    seeds 22–24), so the frequency it gives is a floor, which a band above it says nothing about."""
+    estimate's resonance: a flagged estimate puts the resonance up to 73 % low but at most 3 % high (family
+    seeds 23 and 24), so the frequency it gives is a floor, which a band above it says nothing about."""
     try:
         resonance_hz = modes(estimate).f_resonance_hz
     except IdentificationError:
