@@ -20,6 +20,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -243,6 +244,10 @@ def test_the_drive_is_enabled_only_after_the_waveform_is_in_it_and_the_rate_chec
 # -- Ctrl-C at each step of a run, in a subprocess ---------------------------------------------------------
 #: Where the SIGINT goes: after the line the command prints at -v (a step begins, or a tenth of the
 #: excitation played). Each is a moment the run reaches; the signal lands there or just after.
+#: How long the Ctrl-C test lets the CLI run before it takes it for hung [s]: a quick run takes 5–7 s here,
+#: up to ~17 s in the suite beside other tests.
+HUNG_CLI_S = 300.0
+
 CTRL_C_POINTS = {
     "start-up": "stage: open",
     "download": "stage: download",
@@ -265,9 +270,13 @@ def test_ctrl_c_at_any_step_stops_the_drive_and_keeps_a_readable_log(point, sig,
     with SlcanAdapter(device, pace=1.0) as adapter:
         cmd = [sys.executable, "-m", "commission.cli", "--port", adapter.path, "--interface", "slcan",
                "--drive", "sim", "--config", "quick", "--out", str(tmp_path / "out"), "-v"]
+        # a CLI that hangs gets SIGABRT, whose faulthandler stacks land in ``lines``: the failure then shows
+        # where it hung, in minutes, instead of the suite's 15-minute timeout with the device's stacks alone
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                                cwd=tmp_path)
+                                cwd=tmp_path, env={**os.environ, "PYTHONFAULTHANDLER": "1"})
         lines, sent = [], False
+        watchdog = threading.Timer(HUNG_CLI_S, lambda: proc.poll() is None and proc.send_signal(signal.SIGABRT))
+        watchdog.start()
         try:
             assert proc.stderr is not None
             for line in proc.stderr:
@@ -279,6 +288,7 @@ def test_ctrl_c_at_any_step_stops_the_drive_and_keeps_a_readable_log(point, sig,
                     sent = True
             code = proc.wait(timeout=120)
         finally:
+            watchdog.cancel()
             if proc.poll() is None:
                 proc.kill()
         stopped = at_rest_and_disabled(device)
