@@ -140,14 +140,15 @@ DISTURBANCE_MISFIT = 0.04
 #: parameters beyond their intervals (a held-out member: J_m +2.8 % at 2.4 %, its interval ±0.07 %;
 #: bench/results/family.md).
 DISTURBANCE_SUSPECT = 0.02
+#: The chirp's end, in resonances, from which wide-gap motor-side records mostly start in the gap's basin
+#: (bench/results/family.md: 7 of 14 such records flagged above it, 26 of 30 below).
+CHIRP_END_PER_RESONANCE = 3.5
 #: What lets a motor-side record whose fit leaves model error determine the plant: such records are mostly of
 #: gears whose gap is wide against the chirp (it rattles them) with a chirp ending near the resonance, where the
 #: start lies in a wrong basin; a load encoder's start does not (README, Known limits; bench/results/family.md).
 MOTOR_SIDE_REMEDIES = ("record with a load encoder: the start then comes from both encoders' equations of motion",
-                       "end the chirp at 3.5× the resonance or more (excitation.f_end_hz), within the sample rate")
-#: The chirp's end, in resonances, from which wide-gap motor-side records mostly start in the gap's basin
-#: (bench/results/family.md: 7 of 14 such records flagged above it, 26 of 30 below).
-CHIRP_END_PER_RESONANCE = 3.5
+                       f"end the chirp at {CHIRP_END_PER_RESONANCE:g}× the resonance or more (excitation.f_end_hz), "
+                       "within the sample rate")
 
 
 def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float, load_encoder: bool = True,
