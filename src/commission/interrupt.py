@@ -15,15 +15,25 @@ While :func:`handling_interrupts` is active (the ``commission`` command installs
 the :class:`KeyboardInterrupt` into an error of its own (canopen's "Block download
 unsuccessful"), so that the command still ends as interrupted (exit 130).
 
+A signal that lands inside the standard library's lock code (entering or leaving a
+``threading.Condition``, as ``queue.Queue`` does for every SDO response) is not raised there: an
+exception between a lock's acquire and the ``with`` that releases it leaves the lock held, or
+releases one that another thread holds (CPython issue 29988), and canopen's receive thread then
+blocks on it for good, so the stop of the drive that follows never gets its answers. Such a signal
+is sent again a few milliseconds later, when the main thread is elsewhere; a thread blocked in a
+wait is interrupted at once, as Python does.
+
 Without the handler (library use) Python's default applies and :func:`deferred` changes nothing.
 """
 
 from __future__ import annotations
 
 import contextlib
+import inspect
 import os
 import signal
 import threading
+import time
 from collections.abc import Iterator
 from types import FrameType
 
@@ -35,6 +45,11 @@ if hasattr(signal, "SIGHUP"):  # not on Windows
     _SIGNALS[signal.SIGHUP] = "SIGHUP (the terminal closed)"
 
 
+#: Seconds until a signal that landed in lock code is sent again: far longer than any stretch of
+#: lock bookkeeping, far shorter than a person notices.
+RESEND_S = 0.005
+
+
 class _State:
     def __init__(self) -> None:
         self.installed = False
@@ -42,21 +57,82 @@ class _State:
         self.depth = 0  # nesting of deferred() blocks
         self.pending = False  # a SIGINT arrived inside a deferred() block
         self.first = "Ctrl-C"  # what the first signal was
+        self.resending = False  # the first signal landed in lock code and is being sent again
+        self.resender: _Resender | None = None
 
 
 _state = _State()
 
 
+def _blocking_lines() -> frozenset[int]:
+    """Lines of threading.py where the main thread blocks in an acquire that an exception may leave
+    (a wait's own lock, a join's): a signal there is raised at once, as Python does."""
+    lines: set[int] = set()
+    for function, call in ((threading.Condition.wait, "waiter.acquire("),
+                           (getattr(threading.Thread, "_wait_for_tstate_lock", None), "lock.acquire(")):
+        try:
+            source, first = inspect.getsourcelines(function)
+        except (OSError, TypeError):  # no source: every line of threading.py defers
+            continue
+        lines.update(first + i for i, text in enumerate(source) if call in text and not text.lstrip().startswith("#"))
+    return frozenset(lines)
+
+
+_THREADING_FILE = threading.__file__
+_BLOCKING_LINES = _blocking_lines()
+
+
+def _in_lock_code(frame: FrameType | None) -> bool:
+    """True when the main thread is in threading.py's lock bookkeeping, where an exception can leave a
+    lock held or release another thread's (module docstring)."""
+    return (frame is not None and frame.f_code.co_filename == _THREADING_FILE
+            and frame.f_lineno not in _BLOCKING_LINES)
+
+
+class _Resender:
+    """A thread that sends a signal again :data:`RESEND_S` after the handler asked it to, through a
+    pipe: the handler only writes a byte, which takes no lock."""
+
+    def __init__(self) -> None:
+        self._read, self._write = os.pipe()
+        self._thread = threading.Thread(target=self._run, name="commission-interrupt", daemon=True)
+        self._thread.start()
+
+    def request(self, signum: int) -> None:
+        os.write(self._write, bytes([signum]))
+
+    def _run(self) -> None:
+        with contextlib.suppress(OSError):  # the pipe closed under a thread that never got the CPU
+            while (data := os.read(self._read, 1)) not in (b"", b"\0"):
+                time.sleep(RESEND_S)
+                if _state.resending:
+                    signal.raise_signal(data[0])
+
+    def close(self) -> None:
+        _state.resending = False  # a signal still on its way is dropped, not sent to the restored handlers
+        os.write(self._write, b"\0")
+        self._thread.join(timeout=1.0)
+        os.close(self._read)
+        os.close(self._write)
+
+
 def _on_sigint(signum: int, frame: FrameType | None) -> None:
-    _state.count += 1
-    if _state.count == 1:
-        _state.first = _SIGNALS.get(signal.Signals(signum), "a signal")
-    if _state.count > 1:
-        # os.write, not print: the handler may run in the middle of a print to stderr
-        os.write(2, b"commission: interrupted again: still stopping the drive and closing the log\n")
-        return
+    if _state.resending:  # the first signal again (or a repeat before it was raised: the same request)
+        _state.resending = False
+    else:
+        _state.count += 1
+        if _state.count == 1:
+            _state.first = _SIGNALS.get(signal.Signals(signum), "a signal")
+        if _state.count > 1:
+            # os.write, not print: the handler may run in the middle of a print to stderr
+            os.write(2, b"commission: interrupted again: still stopping the drive and closing the log\n")
+            return
     if _state.depth > 0:
         _state.pending = True
+        return
+    if _in_lock_code(frame) and _state.resender is not None:
+        _state.resending = True
+        _state.resender.request(signum)
         return
     raise KeyboardInterrupt
 
@@ -68,15 +144,16 @@ def handling_interrupts() -> Iterator[None]:
     if _state.installed or threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = {sig: signal.signal(sig, _on_sigint) for sig in _SIGNALS}
     _state.installed, _state.count, _state.depth, _state.pending = True, 0, 0, False
-    _state.first = "Ctrl-C"
+    _state.first, _state.resending, _state.resender = "Ctrl-C", False, _Resender()
+    previous = {sig: signal.signal(sig, _on_sigint) for sig in _SIGNALS}
     try:
         yield
     finally:
+        _state.resender.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        _state.installed = False
+        _state.installed, _state.resender = False, None
 
 
 @contextlib.contextmanager
