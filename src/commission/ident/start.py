@@ -243,7 +243,9 @@ def inertia_start(frd: FRD, f_max: float) -> TwoMassParameters | None:
     (at least 5 bins) is J_m + J_l, over its top 20 % below ``f_max`` J_m (above a resonance the motor
     moves alone) — and the anti-resonance where it falls half way between the two (past the
     anti-resonance the load moves against the motor; J_m + J_l split evenly when the two do not differ),
-    ζ 0.05, a mechanical corner at 1 Hz. None when it shows no positive inertia."""
+    ζ 0.05, a mechanical corner at 1 Hz. Where friction holds the motor in the lowest band, which then shows
+    no positive inertia, the top's is taken for each side and the anti-resonance at the band's geometric
+    middle. None when the top shows no positive inertia either."""
     f = frd.frequency_hz
     with np.errstate(divide="ignore", invalid="ignore"):
         j = (1.0 / frd.response).imag / (2.0 * np.pi * f)
@@ -253,8 +255,11 @@ def inertia_start(frd: FRD, f_max: float) -> TwoMassParameters | None:
         return None
     total = float(np.median(j[:max(5, f.size // 50)]))
     top = float(np.median(j[-max(5, f.size // 5):]))
-    if not total > 0.0:
-        return None
+    held = not total > 0.0
+    if held:
+        if not top > 0.0:
+            return None
+        total = 2.0 * top
     J_m = top if 0.0 < top < 0.9 * total else 0.5 * total
     J_l = total - J_m
     # the first fall below half way above the low band, in its running median over ±25 bins (at most
@@ -263,7 +268,7 @@ def inertia_start(frd: FRD, f_max: float) -> TwoMassParameters | None:
     at = np.arange(max(5, f.size // 50), f.size, step)
     smooth = np.array([np.median(j[max(0, i - 25):i + 26]) for i in at])
     below = np.flatnonzero(smooth < 0.5 * (total + J_m))
-    f_a = float(f[at[below[0]]]) if below.size else float(np.sqrt(f[0] * f[-1]))
+    f_a = float(f[at[below[0]]]) if below.size and not held else float(np.sqrt(f[0] * f[-1]))
     K = (2.0 * np.pi * f_a) ** 2 * J_l
     w_r = math.sqrt(K * total / (J_m * J_l))
     B = 2.0 * np.pi * 1.0 * total
