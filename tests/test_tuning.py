@@ -264,6 +264,25 @@ def test_identified_current_loop_and_friction_are_used() -> None:
     assert v.margins.phase_margin_deg >= 45.0 and v.ready, v.reasons
 
 
+def test_friction_on_an_almost_weightless_load_is_still_checked_in_closed_loop() -> None:
+    """A flagged fit of heavy friction left J_l 3.4e-6 kg·m² with 0.057 N·m of friction on it: a smooth sign
+    of F/(v_s·J_l) 1.7e7 1/s, which the plant simulation refuses. The check widens the sign to what it takes
+    and verifies, instead of ending the run with an error and no report."""
+    from types import SimpleNamespace
+
+    from commission.plant import MAX_COULOMB_RATE
+
+    light = replace(IDENTIFIED, J_l=3.4e-6, K=IDENTIFIED.K * 3.4e-6 / IDENTIFIED.J_l)
+    friction = {"velocity_scale_rad_s": 1e-3, "motor_nm": 0.01, "load_nm": 0.057}
+    with pytest.raises(ValueError, match="coulomb_load_nm"):
+        PlantParameters.from_two_mass(light, EPS_ID, coulomb_load_nm=0.057, coulomb_velocity_scale_rad_s=1e-3)
+    ident = SimpleNamespace(parameters=light, epsilon_rad=EPS_ID, backlash_detected=True, current_loop=None,
+                            friction=friction)
+    v = verify(design(ident, TuningOptions()), ident, scenarios=("position_step",))
+    assert v.plant.coulomb_load_nm == 0.057 and v.plant.coulomb_motor_nm == 0.01
+    assert v.plant.coulomb_velocity_scale_rad_s == pytest.approx(0.057 / (MAX_COULOMB_RATE * 3.4e-6))
+
+
 def test_no_compensation_from_a_model_that_does_not_explain_the_data() -> None:
     """An identification that leaves 2 % of the torque unexplained (bench_tuning's impact-rich
     'stiff light 200Hz': ε 0.31° for 0.25°, where compensating made the load error worse)."""

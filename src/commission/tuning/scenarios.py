@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..ident.twomass import TwoMassParameters
-from ..plant import Plant, PlantKernel, PlantParameters
+from ..plant import MAX_COULOMB_RATE, Plant, PlantKernel, PlantParameters
 from .closedloop import MAX_NOTCHES, simulate_closed_loop
 from .loop import notch_coefficients
 from .settings import ControllerSettings, TuningOptions
@@ -55,15 +55,19 @@ def plant_from_model(model: Any, epsilon_rad: float, current_loop_bandwidth_hz: 
     """The identified model as a plant to simulate, with a drive's current loop and computation
     delay [whole samples]: an Identification brings the Coulomb friction it kept (``friction``
     section); a bare :class:`TwoMassParameters` has none. ``parameters``: other two-mass
-    parameters than the model's (a member of the uncertainty set)."""
+    parameters than the model's (a member of the uncertainty set). Friction on an inertia so small that
+    its smooth sign would be stiffer than the simulation takes (:data:`commission.plant.MAX_COULOMB_RATE`:
+    a flagged fit can leave an almost weightless load) gets the narrowest smooth sign that it takes."""
     params = parameters if parameters is not None else (model if isinstance(model, TwoMassParameters)
                                                         else model.parameters)
     fr = getattr(model, "friction", None) or {}
     extras: dict[str, Any] = {"current_loop_bandwidth_hz": current_loop_bandwidth_hz,
                               "delay_samples": int(delay_samples)}
     if fr:
-        extras.update(coulomb_motor_nm=float(fr.get("motor_nm", 0.0)), coulomb_load_nm=float(fr.get("load_nm", 0.0)),
-                      coulomb_velocity_scale_rad_s=float(fr.get("velocity_scale_rad_s", 1e-3)))
+        f_m, f_l = float(fr.get("motor_nm", 0.0)), float(fr.get("load_nm", 0.0))
+        scale = max(float(fr.get("velocity_scale_rad_s", 1e-3)), f_m / (MAX_COULOMB_RATE * params.J_m),
+                    f_l / (MAX_COULOMB_RATE * params.J_l))
+        extras.update(coulomb_motor_nm=f_m, coulomb_load_nm=f_l, coulomb_velocity_scale_rad_s=scale)
     return PlantParameters.from_two_mass(params, float(epsilon_rad), **extras)
 
 
