@@ -230,3 +230,8 @@ def test_the_last_line_says_what_a_new_record_needs_when_the_identification_name
     line = _next_step(args, {"out_dir": "o", "identification": {"fit": fit}})
     assert "a new record would help: record with a load encoder; or a longer chirp" in line
     assert "new record" not in _next_step(args, {"out_dir": "o", "identification": {"fit": {**fit, "remedies": []}}})
+    # no controller: --no-tune is named only when it was given, else the closed-loop check that could not run
+    assert "could not be checked in closed loop" in line and "--no-tune" not in line
+    tuned_not = _next_step(argparse.Namespace(replay=None, sim=False, no_identify=False, no_tune=True),
+                           {"out_dir": "o", "identification": {"fit": fit}})
+    assert "run without --no-tune" in tuned_not

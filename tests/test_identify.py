@@ -256,6 +256,9 @@ def test_a_fit_that_explains_nothing_claims_no_precision() -> None:
     wide = assess(fit_with(1.0, disturbance_nm=0.02), **side, band_top_hz=1.2 * end_hz).remedies
     assert wide == assess(fit_with(1.0, disturbance_nm=0.02), **side).remedies
     assert not any(f"{end_hz:.0f} Hz" in r for r in wide) and any("3.5× the resonance" in r for r in wide)
+    # nor where the estimate puts the resonance beyond the band: the record does not show it
+    beyond = assess(fit_with(1.0, disturbance_nm=0.02), **side, band_top_hz=0.2 * end_hz).remedies
+    assert beyond == wide
     # beyond the band a record at this sample rate can fit: the sample rate that reaches it is named too
     slow = assess(fit_with(1.0, disturbance_nm=0.02), torque_rms_nm=0.1, sample_rate_hz=400.0, load_encoder=False,
                   band_top_hz=150.0).remedies

@@ -283,6 +283,28 @@ def test_friction_on_an_almost_weightless_load_is_still_checked_in_closed_loop()
     assert v.plant.coulomb_velocity_scale_rad_s == pytest.approx(0.057 / (MAX_COULOMB_RATE * 3.4e-6))
 
 
+@pytest.mark.parametrize("approximate", [True, False])
+def test_a_model_the_check_cannot_simulate_costs_the_settings_not_the_run(approximate: bool, tmp_path) -> None:
+    """A flagged fit of 2 s with heavy motor friction ended at D/J_l 7.7e6 1/s, a 1.2 MHz mode no plant
+    simulation takes. Approximate, the run keeps its result and report and only the settings are missing,
+    with a warning that says why; an identification not flagged with such a model is an error."""
+    from types import SimpleNamespace
+
+    from commission.sequencer import tune_and_export
+
+    p = TwoMassParameters(J_m=4.66e-4, J_l=4.92e-6, B_m=1.13e-3, B_l=1.26e-2, K=0.0857, D=37.9)
+    ident = SimpleNamespace(parameters=p, epsilon_rad=math.radians(0.0167), backlash_detected=True,
+                            current_loop=None, friction={"velocity_scale_rad_s": 2e-3, "motor_nm": 0.086},
+                            fit=SimpleNamespace(approximate=approximate))
+    if approximate:
+        with pytest.warns(UserWarning, match="no controller settings: the closed-loop check cannot simulate"):
+            assert tune_and_export(tmp_path, ident, TuningOptions(), None) is None
+        assert not any(tmp_path.iterdir())
+    else:
+        with pytest.raises(TuningError, match="fastest mode"):
+            tune_and_export(tmp_path, ident, TuningOptions(), None)
+
+
 def test_no_compensation_from_a_model_that_does_not_explain_the_data() -> None:
     """An identification that leaves 2 % of the torque unexplained (bench_tuning's impact-rich
     'stiff light 200Hz': ε 0.31° for 0.25°, where compensating made the load error worse)."""

@@ -316,8 +316,9 @@ def _replay(args: argparse.Namespace, config: Config, term: _Terminal, identify:
                     else None)
             tuning = tune_and_export(out_dir, identification, _tuning_options(config, args), _description(args),
                                      plant, band)
-            result["controller"] = tuning.controller
-            result["files"] += [str(f) for f in tuning.files]
+            if tuning is not None:
+                result["controller"] = tuning.controller
+                result["files"] += [str(f) for f in tuning.files]
     from .sequencer import write_run_report
 
     report = write_run_report(out_dir, recording, identification, recorded,
@@ -563,7 +564,8 @@ def _apply(args: argparse.Namespace, drive: Any, outcome: Any, term: _Terminal, 
     from .mcaplog import append_result
     from .tuning import TuningError, apply_staged, conservative_settings, drive_parameters
 
-    assert outcome.tuning is not None  # checked before the run
+    if outcome.tuning is None:  # the identification is approximate and its model no plant (warned)
+        raise TuningError("no settings to write: the identified model could not be checked in closed loop")
     if not outcome.tuning.controller["verification"]["ready"]:
         raise TuningError("settings are not ready, nothing written: "
                           + "; ".join(outcome.tuning.controller["verification"]["reasons"]))
@@ -763,8 +765,10 @@ def _next_step(args: argparse.Namespace, result: dict[str, Any]) -> str:
                 "record would help: " + "; or ".join(remedies))
     ctl = result.get("controller")
     if ctl is None:
-        missing = "--no-identify" if "identification" not in result else "--no-tune"
-        return f"next: {see}; run without {missing} for controller settings"
+        if getattr(args, "no_identify", False) or getattr(args, "no_tune", False):
+            missing = "--no-identify" if "identification" not in result else "--no-tune"
+            return f"next: {see}; run without {missing} for controller settings"
+        return f"next: {see}; no controller settings: the identified model could not be checked in closed loop"
     verification = ctl.get("verification", {})
     if not verification.get("ready"):
         reasons = "; ".join(verification.get("reasons", [])) or "see the report"

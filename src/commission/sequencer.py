@@ -100,9 +100,12 @@ class TuningOutcome:
 
 def tune_and_export(out_dir: Path, identification: Any, options: Any, description: Any | None,
                     true_plant: PlantParameters | None = None,
-                    excitation_band_hz: tuple[float, float] | None = None) -> TuningOutcome:
+                    excitation_band_hz: tuple[float, float] | None = None) -> TuningOutcome | None:
     """Design the controller from the identification, verify it in closed loop and write
     ``controller.json`` (and ``controller-<drive>.yaml`` with a drive description).
+
+    None, with a warning, when an approximate identification's model is no plant the closed-loop check
+    can simulate (a flagged fit can end far from any machine): its result and report are still written.
 
     :param description: the drive's description: its loop structure and parameter map.
     :param true_plant: the simulator's plant on simulated runs (the caller knows it ran one): the
@@ -113,8 +116,8 @@ def tune_and_export(out_dir: Path, identification: Any, options: Any, descriptio
     """
     from .tuning import TuningError, controller_json, design, verify, write_controller_files
 
-    settings = design(identification, options, description=description, excitation_band_hz=excitation_band_hz)
     try:
+        settings = design(identification, options, description=description, excitation_band_hz=excitation_band_hz)
         if true_plant is not None:
             verification = verify(settings, true_plant, options)
         else:
@@ -122,8 +125,12 @@ def tune_and_export(out_dir: Path, identification: Any, options: Any, descriptio
     except ValidationError as err:  # the model is not a plant the closed-loop check can simulate
         first = err.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
-        raise TuningError(f"the closed-loop check cannot simulate the identified model: "
-                          f"{where + ': ' if where else ''}{str(first['msg']).removeprefix('Value error, ')}") from err
+        why = (f"the closed-loop check cannot simulate the identified model: "
+               f"{where + ': ' if where else ''}{str(first['msg']).removeprefix('Value error, ')}")
+        if getattr(getattr(identification, "fit", None), "approximate", False):
+            warnings.warn(f"no controller settings: {why} (the identification is approximate)", stacklevel=2)
+            return None
+        raise TuningError(why) from err
     with deferred():  # whole files, even when Ctrl-C comes meanwhile
         files = write_controller_files(out_dir, settings, verification, description)
     return TuningOutcome(settings, verification, controller_json(settings, verification), files)
@@ -353,7 +360,7 @@ class Sequencer:
                 exc = self.config.excitation
                 tuning = tune_and_export(self.out_dir, identification, self.config.tuning, self.description,
                                          self.true_plant, (exc.f_start_hz, exc.f_end_hz))
-                files += tuning.files
+                files += tuning.files if tuning is not None else []
         self._stage("report")
         report = write_run_report(self.out_dir, recording, identification, config_to_dict(self.config),
                                   str(log_path), files, tuning, true_plant=self.true_plant)

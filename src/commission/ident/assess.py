@@ -208,14 +208,16 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float, load_enc
 def _remedies(estimate: TwoMassParameters, band_top_hz: float | None, sample_rate_hz: float) -> tuple[str, ...]:
     """What a new motor-side record needs: a load encoder, or a chirp ending at ``CHIRP_END_PER_RESONANCE``× the
     resonance. The chirp's end is named only where this record's band stops below that multiple of the
-    estimate's resonance: a flagged estimate puts the resonance up to 73 % low but at most 3 % high (family
-    seeds 23 and 24), so the frequency it gives is a floor, which a band above it says nothing about."""
+    estimate's resonance: a flagged estimate of the family puts the resonance up to 73 % low but at most 3 %
+    high (seeds 23 and 24), so the frequency it gives is a floor, which a band above it says nothing about.
+    Nor is it named for a resonance beyond the band, which the record does not show (2 s of a chirp with
+    heavy motor friction put it at 2.4 kHz, 37× the plant's)."""
     try:
         resonance_hz = modes(estimate).f_resonance_hz
     except IdentificationError:
         resonance_hz = math.nan
     end_hz = CHIRP_END_PER_RESONANCE * resonance_hz
-    if band_top_hz is None or not band_top_hz < end_hz:
+    if band_top_hz is None or not resonance_hz < band_top_hz < end_hz:
         return MOTOR_SIDE_REMEDIES
     chirp = (f"end the chirp at {end_hz:.0f} Hz or more (excitation.f_end_hz): {CHIRP_END_PER_RESONANCE:g}× the "
              f"resonance this estimate puts at {resonance_hz:.0f} Hz, where this record's torque stops near "
