@@ -565,7 +565,7 @@ def _apply(args: argparse.Namespace, drive: Any, outcome: Any, term: _Terminal, 
     from .tuning import TuningError, apply_staged, conservative_settings, drive_parameters
 
     if outcome.tuning is None:  # the identification is approximate and its model no plant (warned)
-        raise TuningError("no settings to write: the identified model could not be checked in closed loop")
+        raise TuningError(f"no settings to write: {_UNCHECKED}")
     if not outcome.tuning.controller["verification"]["ready"]:
         raise TuningError("settings are not ready, nothing written: "
                           + "; ".join(outcome.tuning.controller["verification"]["reasons"]))
@@ -768,7 +768,7 @@ def _next_step(args: argparse.Namespace, result: dict[str, Any]) -> str:
         if getattr(args, "no_identify", False) or getattr(args, "no_tune", False):
             missing = "--no-identify" if "identification" not in result else "--no-tune"
             return f"next: {see}; run without {missing} for controller settings"
-        return f"next: {see}; no controller settings: the identified model could not be checked in closed loop"
+        return f"next: {see}; no controller settings: {_UNCHECKED}"
     verification = ctl.get("verification", {})
     if not verification.get("ready"):
         reasons = "; ".join(verification.get("reasons", [])) or "see the report"
@@ -817,6 +817,9 @@ def _robust_rows(ctl: dict[str, Any]) -> list[tuple[str, str]]:
         rows.append(("bandwidth limited by", f"{lim['factor']}: {lim['detail']}"))
     return rows
 
+
+#: Why a run has no controller settings although tuning was asked for (sequencer.tune_and_export warns).
+_UNCHECKED = "the identified model could not be checked in closed loop"
 
 #: Exit code of a run that wrote all its outputs but whose identification is approximate.
 APPROXIMATE_EXIT_CODE = 8

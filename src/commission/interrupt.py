@@ -29,7 +29,7 @@ Without the handler (library use) Python's default applies and :func:`deferred` 
 from __future__ import annotations
 
 import contextlib
-import inspect
+import linecache
 import os
 import signal
 import threading
@@ -66,15 +66,15 @@ _state = _State()
 
 def _blocking_lines() -> frozenset[int]:
     """Lines of threading.py where the main thread blocks in an acquire that an exception may leave
-    (a wait's own lock, a join's): a signal there is raised at once, as Python does."""
+    (a wait's own lock, a join's): a signal there is raised at once, as Python does. Without the source
+    every line of threading.py defers."""
     lines: set[int] = set()
     for function, call in ((threading.Condition.wait, "waiter.acquire("),
                            (getattr(threading.Thread, "_wait_for_tstate_lock", None), "lock.acquire(")):
-        try:
-            source, first = inspect.getsourcelines(function)
-        except (OSError, TypeError):  # no source: every line of threading.py defers
-            continue
-        lines.update(first + i for i, text in enumerate(source) if call in text and not text.lstrip().startswith("#"))
+        code = getattr(function, "__code__", None)
+        if code is not None:  # the function's lines of code, read from the file (linecache, not inspect: start-up)
+            lines.update(n for *_, n in code.co_lines()
+                         if n is not None and call in linecache.getline(code.co_filename, n))
     return frozenset(lines)
 
 
