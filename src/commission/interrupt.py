@@ -58,6 +58,7 @@ class _State:
         self.pending = False  # a SIGINT arrived inside a deferred() block
         self.first = "Ctrl-C"  # what the first signal was
         self.resending = False  # the first signal landed in lock code and is being sent again
+        self.closing = False  # handling_interrupts is ending
         self.resender: _Resender | None = None
 
 
@@ -109,14 +110,19 @@ class _Resender:
                     signal.raise_signal(data[0])
 
     def close(self) -> None:
-        _state.resending = False  # a signal still on its way is dropped, not sent to the restored handlers
+        # a signal still on its way is dropped, not sent to the restored handlers: the thread is waited for
+        # (it sleeps 5 ms at most), and meanwhile the handler only counts
+        _state.closing, _state.resending = True, False
         os.write(self._write, b"\0")
-        self._thread.join(timeout=1.0)
+        self._thread.join(timeout=10.0)
         os.close(self._read)
         os.close(self._write)
 
 
 def _on_sigint(signum: int, frame: FrameType | None) -> None:
+    if _state.closing:  # the block has ended: nothing is raised on its way out
+        _state.count = max(_state.count, 1)
+        return
     if _state.resending:  # the first signal again (or a repeat before it was raised: the same request)
         _state.resending = False
     else:
@@ -145,7 +151,7 @@ def handling_interrupts() -> Iterator[None]:
         yield
         return
     _state.installed, _state.count, _state.depth, _state.pending = True, 0, 0, False
-    _state.first, _state.resending, _state.resender = "Ctrl-C", False, _Resender()
+    _state.first, _state.resending, _state.closing, _state.resender = "Ctrl-C", False, False, _Resender()
     previous = {sig: signal.signal(sig, _on_sigint) for sig in _SIGNALS}
     try:
         yield
@@ -153,7 +159,7 @@ def handling_interrupts() -> Iterator[None]:
         _state.resender.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        _state.installed, _state.resender = False, None
+        _state.installed, _state.resender, _state.closing = False, None, False
 
 
 @contextlib.contextmanager
