@@ -118,15 +118,13 @@ def test_result_json_has_exactly_the_documented_keys() -> None:
     assert 0 < lo < 1.0 and 300.0 < hi <= 420.0  # the chirp's 0.1–400 Hz, to the bins' edge
 
 
-def test_velocity_only_and_load_encoder_recordings() -> None:
+def test_a_load_encoder_the_options_turn_off_is_not_used() -> None:
+    # (velocity-only and load-encoder records are identified within the tolerances: test_identify)
     true, eps = PLANTS["reference"]
-    v_only = identify(_record(true, eps, position=False))
-    _check(v_only, true, eps, 1.0)
-    with_load = identify(_record(true, eps, load=True))
-    _check(with_load, true, eps, 1.0)
-    assert any("load encoder" in n for n in with_load.notes)
     ignored = identify(_record(true, eps, load=True), IdentificationOptions(use_load_encoder=False))
     assert not any("load encoder" in n for n in ignored.notes)
+    assert ignored.stage("start").detail["load_encoder"] is False
+    _check(ignored, true, eps, 1.0)
 
 
 def test_the_encoders_start_reads_the_plant_off_both_encoders_with_any_number_of_threads() -> None:
