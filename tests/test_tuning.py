@@ -305,6 +305,35 @@ def test_a_model_the_check_cannot_simulate_costs_the_settings_not_the_run(approx
             tune_and_export(tmp_path, ident, TuningOptions(), None)
 
 
+def test_settings_checked_on_an_approximate_identification_are_not_ready(tmp_path) -> None:
+    """On a real axis the check runs on the identified model; when the identification is flagged
+    approximate that model does not describe the record, so a pass on it says nothing about the
+    machine: the same settings that are ready on an unflagged identification are not, with the reason,
+    and --apply's gate (controller.json's ``ready``) refuses them. On a simulated run the check is on the
+    true machine and stands on its own."""
+    from types import SimpleNamespace
+
+    from commission.sequencer import tune_and_export
+    from commission.tuning.verify import APPROXIMATE_MODEL
+
+    def ident(approximate: bool) -> SimpleNamespace:
+        fit = SimpleNamespace(residual_ratio=3e-4, approximate=approximate, noise_limited=False)
+        return SimpleNamespace(parameters=IDENTIFIED, epsilon_rad=EPS_ID, backlash_detected=True,
+                               current_loop=None, friction=None, fit=fit)
+
+    plain = tune_and_export(tmp_path / "plain", ident(False), TuningOptions(), None)
+    flagged = tune_and_export(tmp_path / "flagged", ident(True), TuningOptions(), None)
+    assert plain is not None and flagged is not None
+    assert plain.controller["verification"]["ready"], plain.controller["verification"]["reasons"]
+    assert flagged.controller["verification"]["ready"] is False
+    assert flagged.controller["verification"]["reasons"][-1] == APPROXIMATE_MODEL
+    written = json.loads((tmp_path / "flagged" / "controller.json").read_text())
+    assert written["verification"]["ready"] is False and APPROXIMATE_MODEL in written["verification"]["reasons"]
+    truth = PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.40)
+    on_truth = tune_and_export(tmp_path / "sim", ident(True), TuningOptions(), None, true_plant=truth)
+    assert on_truth is not None and APPROXIMATE_MODEL not in on_truth.controller["verification"]["reasons"]
+
+
 def test_no_compensation_from_a_model_that_does_not_explain_the_data() -> None:
     """An identification that leaves 2 % of the torque unexplained (bench_tuning's impact-rich
     'stiff light 200Hz': ε 0.31° for 0.25°, where compensating made the load error worse)."""

@@ -5,7 +5,7 @@ each run with the proposed settings, without the notch (if any) and without the 
 compensation (if any). Margins are computed on the plant's linear model (contact) and on the
 motor alone (gap) with the loop of :mod:`.loop`, with the plant's own current loop and delay.
 ``ready`` is False, with the reasons, when a margin fails or the load limit-cycles above
-``max_limit_cycle_rad``.
+``max_limit_cycle_rad``, and on a real axis also when the identification is approximate.
 
 The plant is never the design model itself, so that a design that holds only on its own
 assumptions is caught:
@@ -16,7 +16,8 @@ assumptions is caught:
   current loop and 2 samples by default, the slow corner of an unknown drive's set);
 * on a real axis, the identified model (with the friction it kept and its backlash) as the
   uncertainty set's worst member for the phase margin: its J_l, K, current loop and delay
-  (rounded up to whole samples).
+  (rounded up to whole samples). An approximate identification's model does not describe the
+  record, so a pass on it is no evidence about the machine: never ready.
 """
 
 from __future__ import annotations
@@ -35,7 +36,10 @@ from .robust import member_plant
 from .scenarios import SCENARIOS, ScenarioResult, plant_from_model, run_scenario
 from .settings import ControllerSettings, LoopMargins, TuningOptions, UncertaintyMember
 
-__all__ = ["ScenarioResult", "Verification", "verify"]
+__all__ = ["APPROXIMATE_MODEL", "ScenarioResult", "Verification", "verify"]
+
+#: The reason a check on an approximate identification's own model does not make the settings ready.
+APPROXIMATE_MODEL = "the identification is approximate: the check ran on a model that does not describe the record"
 
 
 @dataclass(frozen=True)
@@ -104,7 +108,13 @@ def verify(settings: ControllerSettings, plant: PlantParameters | TwoMassParamet
     opt = options or TuningOptions()
     tp, note = verification_plant(settings, plant, opt, epsilon_rad)
     with threadpool_limits(1):
-        return _verify(settings, tp, note, opt, scenarios, compare)
+        v = _verify(settings, tp, note, opt, scenarios, compare)
+    fit = getattr(plant, "fit", None)
+    if getattr(fit, "approximate", False):
+        # a check on a model that does not describe the record says nothing about the machine: settings
+        # that pass it on a flagged identification are not to be written to a drive
+        v = replace(v, ready=False, reasons=(*v.reasons, APPROXIMATE_MODEL))
+    return v
 
 
 def _verify(settings: ControllerSettings, tp: PlantParameters, note: str, opt: TuningOptions,
