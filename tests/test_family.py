@@ -9,6 +9,7 @@ import pytest
 
 from commission.config import ExcitationConfig
 from commission.excitation import chirp
+from commission.ident.consistency import reconcile
 from sim_drive import family as fam
 from sim_drive.family import DEFAULT_SEED, Sensors, family, member
 
@@ -98,6 +99,8 @@ def test_every_member_simulates(members: list[fam.Member]) -> None:
         peaks.append(float(np.max(np.abs(smooth))))
         assert peaks[-1] < 1.5 * fam.SPEED_LIMIT_RAD_S, (m.id, peaks[-1])
         assert abs(peaks[-1]) > 1.0, m.id  # and the motor moves
+        # every signal agrees with the others: the identifier's consistency check changes nothing
+        assert reconcile(rec) == (rec, []), m.id
     # the reference experiment's ±17 rad/s is the middle of the family, not its edge
     assert 8.0 < float(np.median(peaks)) < 25.0
 

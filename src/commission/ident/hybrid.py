@@ -131,10 +131,10 @@ def identify(recording: Recording, options: IdentificationOptions | None = None,
     :raises IdentificationError: the record cannot give a model at all (one-line reason); a model
         that fits it poorly is returned, flagged approximate with the reasons.
     """
-    from .wrap import unwrap_positions
+    from .consistency import reconcile
 
     opt = options if options is not None else IdentificationOptions()
-    recording, notes = unwrap_positions(recording)  # (before resampling: a spline through a wrap rings)
+    recording, notes = reconcile(recording)  # (before resampling: a spline through a wrap rings)
     if not recording.is_uniform:
         # host-streamed runs carry the real sample times: identify on the nominal grid
         from .resample import to_uniform

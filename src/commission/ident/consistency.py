@@ -1,0 +1,181 @@
+"""The record's signals checked against each other before anything is fitted: a position in other units
+than its velocity, one that counts the other way, one that wraps, a torque whose sign is reversed.
+
+Positions that wrap: a single-turn encoder or a counter exported as it stands jumps by one period
+where the axis crossed it, and no model explains such a record (the fits then spend minutes on it).
+A sample-to-sample step of a position is at most the largest velocity times the sample period (the
+drive's velocity is that difference); a step far beyond it is a jump. When every jump is a whole
+multiple of one period (within ``PERIOD_RTOL``) and the position stays within a period, it is unwrapped
+and the note says so; other jumps are glitches, and the position is left out (the identification uses
+the velocity, or the motor side alone), with a note that says where it jumped.
+
+Scale and direction: the median ratio of a position's steps to the motion the velocity says (over the
+samples where the axis moves well) is 1 when both are in rad and rad/s and count the same way. About
+0: the position was not recorded (left out); about −1: it counts the other way (reversed); anything else
+is a unit error no one can undo from the record (an error that names the ratio). A passive machine
+absorbs the work the torque does on it: mean(τ·v) > 0. A record where it is clearly negative has its
+torque's sign reversed against the encoder: identified with the torque reversed, and said so.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..exceptions import IdentificationError
+from ..recording import Recording
+
+__all__ = ["reconcile", "unwrap_positions"]
+
+#: A step beyond this many times the largest motion a sample allows is a jump (a 2π wrap is told
+#: from motion up to ~0.5 rad per sample, 4,000 rad/s at 8 kHz).
+JUMP_FACTOR = 10.0
+#: ... and beyond this [rad] in any case: an encoder's quantization step is never a jump.
+JUMP_FLOOR_RAD = 0.05
+#: The jumps are one period's multiples when each is within this share of a period of one.
+PERIOD_RTOL = 0.01
+#: A position agrees with its velocity when its steps are this range's multiples of the velocity's
+#: motion (a velocity the drive filters or estimates lags a little at the chirp's top) ...
+SCALE_RANGE = (0.7, 1.4)
+#: ... and was not recorded when they are below this share of it.
+SCALE_STILL = 0.05
+#: Samples whose motion is above this share of the largest are the ones the scale is read on.
+SCALE_MOVING = 0.3
+#: Correlation of torque and velocity below which the torque's sign is reversed (every passive plant of
+#: the bench's families is above +0.05, their median +0.7).
+REVERSED_POWER = -0.02
+
+
+def reconcile(rec: Recording) -> tuple[Recording, list[str]]:
+    """``rec`` with its positions and torque made to agree with its velocity, and the notes on what was
+    changed (module docstring).
+
+    :raises IdentificationError: a position whose units are not its velocity's (or a load position not
+        on the motor's scale), which the record cannot say how to undo.
+    """
+    notes: list[str] = []
+    rec = _judged(rec, "motor_position", _step_ratio(rec.motor_position, _motion(rec.motor_velocity, rec.t)), notes)
+    rec, wraps = unwrap_positions(rec)
+    notes += wraps
+    if rec.load_position is not None:
+        if rec.load_velocity is not None:
+            ratio = _step_ratio(rec.load_position, _motion(rec.load_velocity, rec.t))
+        else:
+            # above the resonance the load hardly moves while the motor does: compared by the whole
+            # displacement (the slow bias's), which the load follows but for the twist
+            motor = (rec.motor_position if rec.motor_position is not None
+                     else np.concatenate(([0.0], np.cumsum(_motion(rec.motor_velocity, rec.t)))))
+            ratio = _displacement_ratio(rec.load_position, motor)
+        rec = _judged(rec, "load_position", ratio, notes)
+    v = rec.motor_velocity
+    power = float(np.mean(rec.torque_ref * v) / max(float(np.std(rec.torque_ref) * np.std(v)), 1e-300))
+    if power < REVERSED_POWER:
+        notes.append(f"the motor turns against torque_ref (correlation of torque and velocity {power:.2f}): "
+                     "the torque's sign is reversed against the encoder's, and it is identified reversed; "
+                     "check the drive's direction settings before closing a loop on it")
+        rec = rec.replace(torque_ref=-rec.torque_ref)
+    return rec, notes
+
+
+def _motion(v: NDArray[np.float64], t: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The step from sample k to k+1 the velocity says [rad], shape (N − 1,) (the drive's convention:
+    v[k+1] = (x[k+1] − x[k])/Ts)."""
+    return v[1:] * np.diff(t)
+
+
+def _step_ratio(x: NDArray[np.float64] | None, motion: NDArray[np.float64]) -> float | None:
+    """The median ratio of ``x``'s steps to ``motion`` (shape (N − 1,), [rad]) where the axis moves well
+    (a wrap's few steps do not move a median); None without a position or motion."""
+    if x is None:
+        return None
+    moving = np.abs(motion) > SCALE_MOVING * float(np.max(np.abs(motion)))
+    if np.count_nonzero(moving) < 20:
+        return None
+    return float(np.median(np.diff(x)[moving] / motion[moving]))
+
+
+def _displacement_ratio(x: NDArray[np.float64], reference: NDArray[np.float64]) -> float | None:
+    """The least-squares slope of ``x``'s displacement on ``reference``'s (both shape (N,), [rad])."""
+    a, b = x - x[0], reference - reference[0]
+    bb = float(np.dot(b, b))
+    return float(np.dot(a, b) / bb) if bb > 0.0 else None
+
+
+def _judged(rec: Recording, name: str, ratio: float | None, notes: list[str]) -> Recording:
+    """``rec`` with position ``name`` left out when it does not move (``ratio`` of its motion to what it
+    should be near 0), reversed when it counts the other way (near −1); an error at any other ratio
+    outside ``SCALE_RANGE``."""
+    lo, hi = SCALE_RANGE
+    if ratio is None or lo <= ratio <= hi:
+        return rec
+    if abs(ratio) < SCALE_STILL:
+        notes.append(f"{name} moves {ratio:.2g}× as far as it should by the velocity: not recorded, left out "
+                     "of the identification")
+        return rec.replace(**{name: None})
+    if -hi <= ratio <= -lo:
+        notes.append(f"{name} counts the other way than the velocity: its sign is reversed")
+        return rec.replace(**{name: -getattr(rec, name)})
+    against = "the motor's" if name == "load_position" else "the velocity's"
+    raise IdentificationError(
+        f"{name} moves {ratio:.3g}× as far as {against} motion says: its units are not rad on the motor's "
+        "scale (degrees, revolutions, counts, a gear ratio; or a velocity in rpm?), and the record cannot "
+        "say which signal to rescale")
+
+
+def unwrap_positions(rec: Recording) -> tuple[Recording, list[str]]:
+    """``rec`` with its wrapped positions unwrapped, and glitched ones left out; the notes say which.
+
+    The bound on a sample's motion comes from the motor velocity (and the load velocity, when the
+    record has one, for the load position), over the longest sample period of the record."""
+    notes: list[str] = []
+    dt = np.diff(rec.t)
+    v_max = float(np.max(np.abs(rec.motor_velocity)))
+    if rec.load_velocity is not None:
+        v_max = max(v_max, float(np.max(np.abs(rec.load_velocity))))
+    changes: dict[str, NDArray[np.float64] | None] = {}
+    for name, v in (("motor_position", rec.motor_velocity), ("load_position", rec.load_velocity)):
+        x = getattr(rec, name)
+        if x is None:
+            continue
+        # the step from sample k to k+1 the velocity says (the drive's convention: v[k+1] = Δx/Ts)
+        motion = v[1:] * dt if v is not None else np.zeros_like(dt)
+        fixed, note = _unwrapped(x, motion, v_max * float(np.max(dt)), name, rec.t)
+        if note:
+            changes[name] = fixed
+            notes.append(note)
+    return (rec.replace(**changes) if changes else rec), notes
+
+
+def _unwrapped(x: NDArray[np.float64], motion: NDArray[np.float64], bound_rad: float, name: str,
+               t: NDArray[np.float64]) -> tuple[NDArray[np.float64] | None, str]:
+    """(the position unwrapped, or None when its jumps are no period's multiples; the note), or (x, "")
+    without jumps.
+
+    :param x: the position [rad], shape (N,).
+    :param motion: each step's motion by the velocity [rad], shape (N − 1,) (zeros when unknown).
+    :param bound_rad: the largest motion a sample allows [rad].
+    """
+    step = np.diff(x)
+    jumps = np.flatnonzero(np.abs(step) > max(JUMP_FACTOR * bound_rad, JUMP_FLOOR_RAD))
+    if jumps.size == 0:
+        return x, ""
+    excess = step[jumps] - motion[jumps]
+    unit = float(np.min(np.abs(excess)))  # a wrap jumps by one period at least
+    turns = np.round(excess / unit)
+    period = float(np.median(np.abs(excess) / np.abs(turns)))
+    if abs(period - 2.0 * math.pi) <= PERIOD_RTOL * 2.0 * math.pi:
+        period = 2.0 * math.pi  # a single-turn position in rad: its period exactly
+    # a wrapped position stays within one period; a spike and back jumps by equal steps too, but not that
+    within = float(np.ptp(x)) <= (1.0 + PERIOD_RTOL) * period + bound_rad
+    if within and np.all(np.abs(excess - turns * period) <= PERIOD_RTOL * period + bound_rad):
+        correction = np.zeros_like(x)
+        correction[jumps + 1] = -turns * period
+        return x + np.cumsum(correction), (
+            f"{name} wraps {jumps.size} times at a period of {period:.6g} rad (a single-turn or counter "
+            "position): unwrapped")
+    k = int(jumps[0])
+    return None, (f"{name} jumps by {step[k]:.3g} rad at sample {k + 1} (t = {t[k + 1]:.4g} s) where the "
+                  f"velocity moves it by at most {bound_rad:.2g} rad, and its {jumps.size} jumps are no "
+                  "wrap of one period (a glitch): left out of the identification")

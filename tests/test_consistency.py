@@ -1,0 +1,141 @@
+"""The record's signals are checked against each other before the identification (ident.consistency).
+
+Positions that wrap (a single-turn encoder, a counter exported as it stands) are unwrapped; positions that
+jump by no period, or do not move, are left out; a position or torque that counts the other way is
+reversed; units that disagree are one clear error. Each with a note. A wrapped record used to run for
+more than 10 minutes and end with nothing; a constant position column gave J_m 1e6× off, not flagged;
+a reversed torque ended flagged with ε at the top of its range."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from commission.cli import main
+from commission.csvlog import write_csv
+from commission.excitation import chirp
+from commission.config import ExcitationConfig
+from commission.ident.twomass import REFERENCE_PLANT
+from commission.exceptions import IdentificationError
+from commission.ident.consistency import reconcile, unwrap_positions
+from commission.recording import Recording
+from sim_drive.plant import Plant, PlantParameters
+
+FS = 8000.0
+
+
+def _run(duration_s: float, load: bool = False) -> Recording:
+    r = Plant(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.40, torque_noise_nm=1e-4, seed=5),
+              FS).run_torque(chirp(ExcitationConfig(duration_s=duration_s)).samples)
+    extra = {"load_position": r.load_position} if load else {}
+    return Recording.uniform(FS, r.torque_ref, r.motor_velocity, motor_position=r.motor_position, **extra)
+
+
+def _wrapped(x: np.ndarray, period: float) -> np.ndarray:
+    return np.mod(x + 0.5 * period, period) - 0.5 * period
+
+
+def _crossings(x: np.ndarray, period: float) -> int:
+    """How often ``x`` crosses an odd multiple of half the period: where ``_wrapped`` jumps."""
+    return int(np.count_nonzero(np.diff(np.floor(x / period + 0.5))))
+
+
+@pytest.fixture(scope="module")
+def run() -> Recording:
+    return _run(10.0, load=True)
+
+
+@pytest.mark.parametrize("period", [2 * math.pi, 0.5])
+def test_a_wrapped_position_is_unwrapped_to_the_one_recorded(run: Recording, period: float) -> None:
+    # 2π: a single-turn position in rad; 0.5 rad: a counter of some other length
+    x = run.motor_position
+    assert _crossings(x, period) > 5
+    got, notes = unwrap_positions(run.replace(motor_position=_wrapped(x, period)))
+    # the same motion (the wrap's offset to the record's first sample aside), to rounding
+    assert np.max(np.abs((got.motor_position - got.motor_position[0]) - (x - x[0]))) < 1e-9
+    assert notes == [f"motor_position wraps {_crossings(x, period)} times at a period of {period:.6g} rad "
+                     "(a single-turn or counter position): unwrapped"]
+
+
+def test_the_load_position_is_unwrapped_on_its_own(run: Recording) -> None:
+    got, notes = unwrap_positions(run.replace(load_position=_wrapped(run.load_position, 2 * math.pi)))
+    assert np.array_equal(got.motor_position, run.motor_position)
+    assert np.max(np.abs((got.load_position - got.load_position[0]) - (run.load_position - run.load_position[0]))) < 1e-9
+    assert len(notes) == 1 and notes[0].startswith("load_position wraps")
+
+
+def test_a_record_without_jumps_is_left_as_it_is(run: Recording) -> None:
+    got, notes = unwrap_positions(run)
+    assert got is run and notes == []
+
+
+def test_a_glitch_leaves_the_position_out_and_says_where(run: Recording) -> None:
+    x = run.motor_position.copy()
+    x[30_000:30_003] += 1.234  # three samples off by a value no wrap has, then back
+    got, notes = unwrap_positions(run.replace(motor_position=x))
+    assert got.motor_position is None and np.array_equal(got.motor_velocity, run.motor_velocity)
+    jump = x[30_000] - x[29_999]
+    assert len(notes) == 1 and f"motor_position jumps by {jump:.3g} rad at sample 30000 (t = 3.75 s)" in notes[0]
+    assert "left out" in notes[0]
+
+
+def test_a_position_in_other_units_than_its_velocity_is_one_clear_error(run: Recording) -> None:
+    # degrees for rad, or a velocity in rpm: the record cannot say which of the two to rescale
+    with pytest.raises(IdentificationError, match=r"motor_position moves 57\.3× as far as the velocity's"):
+        reconcile(run.replace(motor_position=np.degrees(run.motor_position)))
+    with pytest.raises(IdentificationError, match=r"moves 0\.105× .*rpm"):
+        reconcile(run.replace(motor_velocity=run.motor_velocity * 60.0 / (2.0 * math.pi)))
+    # a load encoder behind a gear (1:10) is not on the motor's scale
+    with pytest.raises(IdentificationError, match=r"load_position moves 0\.1× as far as the motor's.*gear ratio"):
+        reconcile(run.replace(load_position=0.1 * run.load_position, load_velocity=None))
+
+
+def test_a_position_that_does_not_move_is_left_out(run: Recording) -> None:
+    # a position column exported though no encoder fed it: identified from the velocity instead
+    got, notes = reconcile(run.replace(motor_position=np.zeros(len(run))))
+    assert got.motor_position is None and len(notes) == 1
+    assert notes[0].startswith("motor_position moves 0× as far as it should") and "left out" in notes[0]
+
+
+def test_positions_that_count_the_other_way_are_reversed(run: Recording) -> None:
+    got, notes = reconcile(run.replace(motor_position=-run.motor_position, load_position=-run.load_position,
+                                       load_velocity=None))
+    assert np.array_equal(got.motor_position, run.motor_position)
+    assert np.array_equal(got.load_position, run.load_position)
+    assert notes == ["motor_position counts the other way than the velocity: its sign is reversed",
+                     "load_position counts the other way than the velocity: its sign is reversed"]
+
+
+def test_a_torque_of_the_other_sign_is_reversed_and_said_so(run: Recording) -> None:
+    # a passive machine absorbs the torque's work: against the velocity, the torque's sign is reversed
+    got, notes = reconcile(run.replace(torque_ref=-run.torque_ref))
+    assert np.array_equal(got.torque_ref, run.torque_ref)
+    assert len(notes) == 1 and notes[0].startswith("the motor turns against torque_ref (correlation")
+    assert "check the drive's direction settings" in notes[0]
+
+
+def test_a_wrapped_reversed_csv_replays_to_the_plant(tmp_path) -> None:
+    # the user's way in: a CSV whose position column is single-turn and whose torque counts the other way;
+    # 3 s of the chirp turn the motor 2 times
+    rec = _run(3.0)
+    assert _crossings(rec.motor_position, 2 * math.pi) >= 2
+    write_csv(tmp_path / "axis.csv", rec.replace(motor_position=_wrapped(rec.motor_position, 2 * math.pi),
+                                                 torque_ref=-rec.torque_ref))
+    assert main(["--replay", str(tmp_path / "axis.csv"), "--out", str(tmp_path / "o"), "--no-tune"]) == 0
+    doc = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert any(n.startswith("motor_position wraps") for n in doc["notes"])
+    assert any(n.startswith("the motor turns against torque_ref") for n in doc["notes"])
+    assert doc["fit"]["approximate"] is False
+    assert doc["backlash"]["epsilon_deg"] == pytest.approx(0.40, abs=0.01)
+    for p in ("J_m", "J_l", "K"):
+        assert doc["two_mass"][p] == pytest.approx(getattr(REFERENCE_PLANT, p), rel=0.02), p
+
+
+def test_units_that_disagree_are_a_one_line_error_of_the_command(tmp_path, capsys) -> None:
+    rec = _run(1.0)
+    write_csv(tmp_path / "deg.csv", rec.replace(motor_position=np.degrees(rec.motor_position)))
+    assert main(["--replay", str(tmp_path / "deg.csv"), "--out", str(tmp_path / "o")]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert any("motor_position moves 57.3× as far as the velocity's motion says" in line for line in err)
+    assert "Traceback" not in "\n".join(err)
