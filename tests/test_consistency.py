@@ -139,3 +139,43 @@ def test_units_that_disagree_are_a_one_line_error_of_the_command(tmp_path, capsy
     err = capsys.readouterr().err.strip().splitlines()
     assert any("motor_position moves 57.3× as far as the velocity's motion says" in line for line in err)
     assert "Traceback" not in "\n".join(err)
+
+
+def _cut(run: Recording, start_s: float, duration_s: float) -> Recording:
+    """``run`` from ``start_s`` on, as a CSV cut from a longer log has it: motor side only, times from 0."""
+    a = int(start_s * FS)
+    b = a + int(duration_s * FS)
+    return Recording.uniform(FS, run.torque_ref[a:b], run.motor_velocity[a:b], motor_position=run.motor_position[a:b])
+
+
+def test_a_record_cut_from_a_running_axis_is_identified_from_its_first_samples_motion(run: Recording) -> None:
+    # 3.5-6.5 s of the reference run: it starts at ~14 rad/s, and the motor reverses once inside it. Started
+    # at rest, the predictor and the load simulation explained 13 % of the torque (J_m 10× off, flagged)
+    from commission.ident.hybrid import identify
+
+    cut = _cut(run, 3.5, 3.0)
+    assert abs(cut.motor_velocity[0]) > 10.0 and cut.motor_velocity.min() < 0.0 < cut.motor_velocity.max()
+    res = identify(cut)
+    assert res.fit is not None and not res.fit.approximate, res.fit.reasons
+    assert res.epsilon_determined and res.epsilon_deg == pytest.approx(0.40, abs=0.01)
+    for p in ("J_m", "J_l", "K"):
+        assert getattr(res.parameters, p) == pytest.approx(getattr(REFERENCE_PLANT, p), rel=0.02), p
+
+
+def test_a_record_in_which_the_load_never_crosses_the_gap_says_it_does_not_determine_e(run: Recording) -> None:
+    # 1-4 s: the motor turns at 9-17 rad/s throughout and the load stays on one flank (its twist is
+    # 0.42-0.75° against ε 0.4°): every ε explains the record alike. The plant is still identified; ε is
+    # not, and the result says so instead of "no backlash detected" with an interval that missed the truth
+    from commission.ident.hybrid import NO_CROSSING, identify
+
+    cut = _cut(run, 1.0, 3.0)
+    twist = (run.motor_position - run.load_position)[int(FS):int(4 * FS)]
+    assert twist.min() > math.radians(0.40)  # (the simulator's own load: on the positive flank throughout)
+    res = identify(cut)
+    assert res.fit is not None and res.fit.approximate and NO_CROSSING in res.fit.reasons
+    assert not res.epsilon_determined
+    lo, hi = res.epsilon_interval_rad
+    assert lo == 0.0 and math.degrees(hi) >= 16.0
+    assert res.to_dict()["backlash"]["determined"] is False
+    for p in ("J_m", "J_l", "K"):
+        assert getattr(res.parameters, p) == pytest.approx(getattr(REFERENCE_PLANT, p), rel=0.02), p

@@ -52,6 +52,22 @@ def test_at_the_true_parameters_the_prediction_errors_are_the_encoders_noise(fs:
     assert wrong_gap is not None and _rms(wrong_gap.normalized) > 2 * _rms(at_truth.normalized)
 
 
+def test_a_record_cut_from_a_running_axis_is_predicted_from_its_first_samples_speed() -> None:
+    # 1 s into the reference run the motor turns at ~9 rad/s: a record that starts there (a CSV cut from a
+    # longer log) is no experiment from rest. At the true parameters its first 1,300 prediction errors were
+    # ~130 times the encoder's noise when the predictor started at rest; it starts at the record's speed now
+    fs = 8000.0
+    tau, r = _record(fs, 4.0, encoder_bits_motor=20)
+    cut = slice(int(fs), None)
+    kp = kalman_problem(tau[cut], r.motor_position[cut], fs)
+    speed = (r.motor_position[int(fs) + 1] - r.motor_position[int(fs) - 1]) * fs / 2
+    assert speed > 5.0 and kp.start.speed_rad_s == pytest.approx(speed, rel=0.01)
+    assert not kalman_problem(tau, r.motor_position, fs).start.moving  # from rest: as before
+    inn = innovations(kp, REFERENCE_PLANT, math.radians(0.4), process_noise_nm=1e-4 * kp.torque_rms_nm)
+    assert inn is not None
+    assert _rms(inn.normalized[:2000]) < 3.0 and _rms(inn.normalized) < 1.5
+
+
 def test_a_drives_computation_delay_is_predicted_in_whole_samples() -> None:
     """A drive whose torque acts 2 samples after its reference (beyond the hold's own), behind a 1 kHz
     current loop: with the delay the predictor's errors at the true plant are the encoder's noise; without

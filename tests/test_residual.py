@@ -52,6 +52,18 @@ def test_residual_at_truth_is_at_the_noise_floor(problem):
     assert r.simulation.events > 10
 
 
+def test_a_record_cut_from_a_running_axis_starts_its_load_at_the_motors_speed(reference, problem):
+    # 1 s into the run the axis turns at ~9 rad/s: a load simulated from rest needed most of the record to
+    # catch up, and the residual at the truth was far above the noise floor
+    cut = slice(int(FS), None)
+    moving = prepare_residual(reference.torque_ref[cut], FS, motor_position=reference.motor_position[cut],
+                              cutoff_hz=400.0)
+    assert moving.start.speed_rad_s > 5.0 and not problem.start.moving
+    r = torque_residual(moving, **TRUE, epsilon_rad=math.radians(0.40))
+    # (the rest: the load's own oscillation about the motor's speed, which the start does not know)
+    assert r.cost / float(np.sqrt(np.mean(moving.torque_f ** 2))) < 5e-3
+
+
 def test_minimum_in_epsilon_is_sharp(problem):
     c0 = torque_residual(problem, **TRUE, epsilon_rad=math.radians(0.40)).cost
     for de in (-0.05, -0.01, 0.01, 0.05):

@@ -651,7 +651,8 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
     if ident is not None:
         tm, md, bl = ident["two_mass"], ident["modes"], ident["backlash"]
         lo, hi = bl["epsilon_interval_deg"]
-        detected = "" if bl.get("detected", True) else "  (no backlash detected)"
+        detected = ("  (not determined by this record)" if not bl.get("determined", True)
+                    else "" if bl.get("detected", True) else "  (no backlash detected)")
         rows += [
             ("method", bl["method"]),
             ("backlash ε", f"{bl['epsilon_deg']:.4f}°  [{lo:.4f}°, {hi:.4f}°]{detected}"),

@@ -674,6 +674,10 @@ def _check_stage(run: _Run, cell: Any, pem: PemFit) -> tuple[FitQuality, list[di
     rec, fs = run.rec, run.fs
     quality = assess(pem, torque_rms_nm=_torque_rms(run), sample_rate_hz=fs, load_encoder=run.use_load,
                      band_top_hz=excited_band_hz(rec.torque_ref, fs))
+    if not _crosses_the_gap(run, pem):
+        quality = replace(quality, approximate=True, reasons=(*quality.reasons, NO_CROSSING),
+                          remedies=(*quality.remedies, "record a run in which the motor reverses (the excitation's "
+                                    "bias changes sign), so that the load crosses the gap"))
     run.notes.extend(f"approximate result: {r}" for r in quality.reasons)
     if quality.noise_limited:
         run.notes.append(f"the model leaves {100 * quality.residual_ratio:.2f} % of the torque unexplained, but as "
@@ -693,6 +697,33 @@ def _check_stage(run: _Run, cell: Any, pem: PemFit) -> tuple[FitQuality, list[di
     return quality, iterations
 
 
+#: Why ε is not determined when the load never leaves one flank.
+NO_CROSSING = ("the load never crosses the gap in this record (the shaft's torque keeps its sign: the motor "
+               "never reverses), so the record does not determine ε")
+
+
+def _crosses_the_gap(run: _Run, pem: PemFit) -> bool:
+    """Whether the shaft's torque changes sign in the estimate's load simulation (so the load crosses the
+    gap, whatever its width): if not, every ε explains the record alike (a record cut from a run before the
+    motor reverses). Without a torque-residual problem (none was built), assumed so."""
+    from .residual import simulate_load
+
+    if run.problem is None:
+        return True
+    p = pem.parameters
+    shaft = simulate_load(run.problem, p.J_l, p.B_l, p.K, p.D, pem.epsilon_rad,
+                          pem.coulomb_load_nm if pem.terms.coulomb_load else None).shaft_torque
+    level = _CROSSING_LEVEL * float(np.max(np.abs(shaft)))
+    return bool(np.count_nonzero(shaft > level) >= _CROSSING_SAMPLES
+                and np.count_nonzero(shaft < -level) >= _CROSSING_SAMPLES)
+
+
+#: The shaft's torque changes sign when at least this many samples lie beyond this share of its largest
+#: magnitude on each side.
+_CROSSING_LEVEL = 0.01
+_CROSSING_SAMPLES = 10
+
+
 def _identification(run: _Run, pem: PemFit, quality: FitQuality, iterations: list[dict[str, float]],
                     stages: list[StageResult], scan_evaluations: int) -> Identification:
     from .scan import EPSILON_EXTEND_MAX_DEG
@@ -701,8 +732,9 @@ def _identification(run: _Run, pem: PemFit, quality: FitQuality, iterations: lis
     eps = pem.epsilon_rad
     if quality.interval_scale > 1.0:  # the intervals as the assessment widened them
         pem = replace(pem, covariance=pem.covariance * quality.interval_scale ** 2)
+    determined = quality.determined and NO_CROSSING not in quality.reasons
     detected = math.degrees(eps) > run.opt.no_backlash_threshold_deg
-    if not detected:
+    if not detected and determined:
         run.notes.append(f"no backlash detected: ε̂ = {math.degrees(eps):.4f}° ≤ {run.opt.no_backlash_threshold_deg}°")
     params = pem.parameters
     num, den = params.velocity_tf()
@@ -715,8 +747,9 @@ def _identification(run: _Run, pem: PemFit, quality: FitQuality, iterations: lis
         run.notes.append(f"approximate result: {quality.reasons[-1]}")
     return Identification(
         method=Method.HYBRID, parameters=params, epsilon_rad=eps,
-        epsilon_interval_rad=(_epsilon_interval(pem, float(run.cutoff["position_step_rad"])) if quality.determined
+        epsilon_interval_rad=(_epsilon_interval(pem, float(run.cutoff["position_step_rad"])) if determined
                               else (0.0, max(run.epsilon_searched_rad, math.radians(EPSILON_EXTEND_MAX_DEG), eps))),
+        epsilon_determined=determined,
         evaluations=scan_evaluations + pem.evaluations, modes=plant_modes, num=num, den=den,
         delay_s=(1 + run.delay_samples) / run.fs, iterations=iterations, stages=stages, source_samples=len(run.rec),
         sample_rate_hz=run.fs, backlash_detected=detected, notes=run.notes, fit=quality,

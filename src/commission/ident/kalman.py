@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from scipy.linalg import expm
 
 from .compiled import per_sample
+from .consistency import InitialMotion, initial_motion
 from .twomass import TwoMassParameters
 
 __all__ = ["KalmanProblem", "Innovations", "innovations", "kalman_problem", "position_step_rad"]
@@ -72,6 +73,9 @@ class KalmanProblem:
     delay_samples: int = 0
     """Whole samples between a torque reference and the current loop beyond the hold's own (a drive's
     computation and transport delay)."""
+    start: InitialMotion = InitialMotion()
+    """How the axis moves at sample 0: at rest for every experiment this tool runs; read off the first
+    samples of a record cut from a longer one."""
 
     @property
     def outputs(self) -> int:
@@ -109,7 +113,7 @@ def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.f
                          np.concatenate((np.tanh(speed / velocity_scale_rad_s), [0.0])), noise,
                          np.ascontiguousarray(measured), _delayed(_lost_torque_variance(tau, ~measured), d),
                          float(np.sqrt(np.mean(tau * tau))),
-                         velocity_scale_rad_s, d)
+                         velocity_scale_rad_s, d, initial_motion(y, fs))
 
 
 def _delayed(x: NDArray[np.float64], d: int) -> NDArray[np.float64]:
@@ -684,8 +688,14 @@ def innovations(problem: KalmanProblem, params: TwoMassParameters, epsilon_rad: 
     x0[0] = pr.motor_position[0]
     P0 = np.zeros((n, n))
     P0[0, 0] = R[0]
-    # the record starts at rest, the twist anywhere in the gap (measured with a load encoder)
+    # the record starts at rest, the twist anywhere in the gap (measured with a load encoder); or moving
+    # at its first samples' speed (known to a fifth), on the flank the shaft's torque presses
     P0[2, 2] = epsilon_rad ** 2 + R[0]
+    if pr.start.moving:
+        x0[1] = x0[3] = pr.start.speed_rad_s
+        P0[1, 1] = P0[3, 3] = (0.2 * pr.start.speed_rad_s) ** 2
+        if pr.load_position is None:
+            x0[2] = pr.start.twist_rad(params.J_l, params.B_l, params.K, epsilon_rad)
     yl = np.zeros(0) if pr.load_position is None else pr.load_position
     if pr.load_position is not None:
         x0[2] = pr.motor_position[0] - pr.load_position[0]

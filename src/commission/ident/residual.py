@@ -58,6 +58,7 @@ from scipy.signal import butter, sosfilt_zi, sosfiltfilt
 
 from ..exceptions import IdentificationError
 from .compiled import per_sample
+from .consistency import InitialMotion, initial_motion
 
 __all__ = [
     "ResidualProblem",
@@ -647,6 +648,8 @@ class ResidualProblem:
     #: Weight (1 or 0) of each decimated motor-block sample: 0 where a sample the link lost reaches
     #: the residual through the triangle kernel and the low-pass (None: every sample counts).
     keep: NDArray[np.float64] | None = None
+    #: How the motor (and the load with it) moves at sample 0: at rest, but in a record cut from a longer one.
+    start: InitialMotion = field(default_factory=InitialMotion)
 
     @property
     def n_samples(self) -> int:
@@ -776,6 +779,7 @@ def prepare_residual(
         acceleration_f=lp(acc), velocity_f=lp(vel), torque_f=lp(trq),
         coulomb=coul, coulomb_f=lp(np.ascontiguousarray(coul)), torque_rate_f=lp(np.ascontiguousarray(rate)),
         torque_ref=np.ascontiguousarray(tau), velocity_scale_rad_s=float(velocity_scale_rad_s), keep=keep,
+        start=initial_motion(x, fs),
     )
 
 
@@ -944,6 +948,8 @@ def simulate_load(problem: ResidualProblem, J_l: float, B_l: float, K: float, D:
     """
     Ts = 1.0 / problem.sample_rate_hz
     xl0 = -problem.initial_twist_rad  # motor position is shifted to start at 0
+    if problem.start.moving and problem.load_position is None:
+        xl0 = -problem.start.twist_rad(float(J_l), float(B_l), float(K), max(float(epsilon_rad), 0.0))
     F_l = 0.0 if coulomb_load_nm is None else float(coulomb_load_nm)
     ivs = 1.0 / problem.velocity_scale_rad_s
     gain = observer.gain_rad_per_nm
@@ -954,7 +960,8 @@ def simulate_load(problem: ResidualProblem, J_l: float, B_l: float, K: float, D:
     cm = contact_map(Ts, float(K) / float(J_l), float(D) / float(J_l), float(B_l) / float(J_l))
     load = problem.load_position if problem.load_position is not None and observer.load_gain != 0.0 else _NONE
     I0, I1, xl, vl, events, e, el = _simulate_load(problem.spline, Ts, float(J_l), float(B_l), float(K), float(D),
-                                                   max(float(epsilon_rad), 0.0), xl0, 0.0, F_l, ivs, cm,
+                                                   max(float(epsilon_rad), 0.0), xl0, problem.start.speed_rad_s,
+                                                   F_l, ivs, cm,
                                                    coulomb_load_nm is not None, motor, float(gain), observer.lowpass,
                                                    load, float(observer.load_gain))
     ts = _shaft_torque_tri(I0, I1, float(K), float(D), Ts)

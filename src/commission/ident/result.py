@@ -123,6 +123,9 @@ class Identification:
     """Model selection (hybrid): per candidate term its Wald z², the threshold ln n, kept."""
     measured_band_hz: tuple[float, float] | None = None
     """The band the record measured with good signal (the FRD's quality), where the model is known [Hz]."""
+    epsilon_determined: bool = True
+    """False when the record does not determine ε (its model explains nothing, or the load never crosses
+    the gap): ``epsilon_interval_rad`` is then every ε the identifier searched."""
 
     @property
     def epsilon_deg(self) -> float:
@@ -148,7 +151,7 @@ class Identification:
             "backlash": {"epsilon_deg": math.degrees(self.epsilon_rad),
                          "epsilon_interval_deg": [math.degrees(lo), math.degrees(hi)],
                          "evaluations": int(self.evaluations), "method": self.method.value,
-                         "detected": bool(self.backlash_detected)},
+                         "detected": bool(self.backlash_detected), "determined": bool(self.epsilon_determined)},
             "two_mass": self.parameters.as_dict(),
             "modes": {"f_resonance_hz": float(m.f_resonance_hz), "zeta_resonance": float(m.zeta_resonance),
                       "f_antiresonance_hz": float(m.f_antiresonance_hz),
