@@ -134,6 +134,7 @@ def identify(recording: Recording, options: IdentificationOptions | None = None,
     from .consistency import reconcile
 
     opt = options if options is not None else IdentificationOptions()
+    _check_recording(recording, opt)  # (first: a clipped velocity would also look like a unit error)
     recording, notes = reconcile(recording)  # (before resampling: a spline through a wrap rings)
     if not recording.is_uniform:
         # host-streamed runs carry the real sample times: identify on the nominal grid
@@ -142,7 +143,6 @@ def identify(recording: Recording, options: IdentificationOptions | None = None,
         recording, rs = to_uniform(recording)
         notes.append(f"resampled from jittered sample times (period jitter rms {rs.jitter_rms_s * 1e6:.0f} µs, "
                      f"max {rs.jitter_max_s * 1e6:.0f} µs) to a uniform {recording.sample_rate_hz:g} Hz grid")
-    _check_recording(recording, opt)
     band, resolution = _band(recording, opt, notes)
     # one BLAS thread: the LAPACK calls are small and run from several threads at once
     with threadpool_limits(limits=1, user_api="blas"):
