@@ -15,6 +15,10 @@ samples where the axis moves well) is 1 when both are in rad and rad/s and count
 is a unit error no one can undo from the record (an error that names the ratio). A passive machine
 absorbs the work the torque does on it: mean(τ·v) > 0. A record where it is clearly negative has its
 torque's sign reversed against the encoder: identified with the torque reversed, and said so.
+
+Where the record starts (:class:`InitialMotion`): every experiment this tool runs starts at rest, but a
+record cut from a longer log may start in motion; the predictor and the load simulation then start at the
+speed and acceleration of its first millisecond.
 """
 
 from __future__ import annotations
@@ -44,8 +48,8 @@ SCALE_RANGE = (0.7, 1.4)
 SCALE_STILL = 0.05
 #: Samples whose motion is above this share of the largest are the ones the scale is read on.
 SCALE_MOVING = 0.3
-#: Correlation of torque and velocity below which the torque's sign is reversed (every passive plant of
-#: the bench's families is above +0.05, their median +0.7).
+#: Correlation of torque and velocity below which the torque's sign is reversed (a passive plant's is
+#: positive; bench/results/RESULTS.md has the family's lowest).
 REVERSED_POWER = -0.02
 
 
@@ -183,7 +187,7 @@ def _unwrapped(x: NDArray[np.float64], motion: NDArray[np.float64], bound_rad: f
 
 
 #: A record starts in motion when its speed over its first ``_START_WINDOW_S`` is above this share of its
-#: largest (an experiment from rest: quantization alone, under 0.1 % on the bench's families).
+#: largest (an experiment from rest shows its encoder's quantization alone there).
 _START_MOVING = 0.05
 _START_WINDOW_S = 1e-3
 

@@ -1,0 +1,136 @@
+"""Replays of the records a CSV export gets wrong (ident.consistency and a record cut from a running axis):
+what ``commission --replay X.csv --no-tune`` gives on each, and how long it takes.
+
+The source is the reference plant (ε 0.4°, 1e-4 N·m torque noise) under the default 10 s chirp at 8 kHz;
+each case changes 3 s of it (or all 10 s) the way a real log can differ. Each line: the exit code, the wall
+time of the command in a fresh process (numba's kernels already cached), ε and its interval, the errors of
+J_m, J_l and K against the plant, whether the result is flagged, and the first note or error.
+
+Then the margins of the same checks on the default family (seed 22, every member): how far each member
+is from being changed by them.
+
+    python bench/bench_replay_inputs.py
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from commission.config import ExcitationConfig
+from commission.csvlog import write_csv
+from commission.excitation import chirp
+from commission.ident.twomass import REFERENCE_PLANT
+from commission.recording import Recording
+from sim_drive.plant import Plant, PlantParameters
+
+FS = 8000.0
+N3 = int(3 * FS)
+
+
+def cases() -> dict[str, Recording]:
+    """Each case's record, by name."""
+    r = Plant(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.40, torque_noise_nm=1e-4, seed=11),
+              FS).run_torque(chirp(ExcitationConfig()).samples)
+    full = Recording.uniform(FS, r.torque_ref, r.motor_velocity, motor_position=r.motor_position)
+    head = full.head(N3)
+
+    def cut(start_s: float) -> Recording:
+        a = int(start_s * FS)
+        return Recording.uniform(FS, full.torque_ref[a:a + N3], full.motor_velocity[a:a + N3],
+                                 motor_position=full.motor_position[a:a + N3])
+
+    wrapped = np.mod(full.motor_position + math.pi, 2 * math.pi) - math.pi
+    return {
+        "as simulated (3 s)": head,
+        "single-turn position (10 s)": full.replace(motor_position=wrapped),
+        "position column constant 0": head.replace(motor_position=np.zeros(N3)),
+        "torque sign reversed": head.replace(torque_ref=-head.torque_ref),
+        "position in degrees": head.replace(motor_position=np.degrees(head.motor_position)),
+        "velocity in rpm": head.replace(motor_velocity=head.motor_velocity * 60 / (2 * math.pi)),
+        "cut at 3.5 s (moving, one reversal)": cut(3.5),
+        "cut at 1 s (moving, never reverses)": cut(1.0),
+    }
+
+
+def replay(path: Path, out: Path) -> tuple[int, float, str]:
+    """(exit code, wall time [s], last stderr line) of the command in a new process."""
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "commission.cli", "--replay", str(path), "--out", str(out),
+                           "--no-tune"], capture_output=True, text=True)
+    lines = proc.stderr.strip().splitlines()
+    return proc.returncode, time.perf_counter() - t0, lines[-1] if lines else ""
+
+
+def row(name: str, code: int, seconds: float, err: str, out: Path) -> str:
+    head = f"{name:38s} exit {code}  {seconds:5.1f} s  "
+    if not (out / "result.json").exists():
+        return head + err.removeprefix("commission: error: ")[:110]
+    doc = json.loads((out / "result.json").read_text())
+    bl, tm, fit = doc["backlash"], doc["two_mass"], doc["fit"]
+    lo, hi = bl["epsilon_interval_deg"]
+    e = {p: 100 * (tm[p] / getattr(REFERENCE_PLANT, p) - 1) for p in ("J_m", "J_l", "K")}
+    first = next((n for n in doc["notes"] if not n.startswith("a 3 s record")), "")
+    return (head + f"ε {bl['epsilon_deg']:.4f}° [{lo:.4f}, {hi:.4f}]"
+            + ("" if bl.get("determined", True) else " (not determined)")
+            + "  " + "  ".join(f"{p} {v:+.2f} %" for p, v in e.items())
+            + ("  FLAGGED" if fit["approximate"] else "") + (f"  | {first[:70]}" if first else ""))
+
+
+def family_margins() -> list[str]:
+    """How far the default family's records are from what the checks act on (none may be acted on)."""
+    from commission.ident import consistency as c
+    from commission.ident.hybrid import _CROSSING_LEVEL, _CROSSING_SAMPLES
+    from commission.ident.residual import motor_position_samples, prepare_residual, simulate_load
+    from sim_drive.family import DEFAULT_SEED, family
+
+    power, motor, load, moving, sides, changed = [], [], [], [], [], 0
+    for m in family(DEFAULT_SEED):
+        rec = m.simulate()
+        fs, p = rec.sample_rate_hz, m.two_mass
+        changed += c.reconcile(rec)[1] != []
+        v = rec.motor_velocity
+        power.append(float(np.mean(rec.torque_ref * v) / (np.std(rec.torque_ref) * np.std(v))))
+        x = motor_position_samples(rec.motor_position, v, fs)
+        if rec.motor_position is not None:
+            motor.append(c._step_ratio(x, c._motion(v, rec.t)))
+        if rec.load_position is not None:
+            load.append(c._displacement_ratio(rec.load_position, x))
+        n = max(8, int(round(c._START_WINDOW_S * fs)))
+        moving.append(abs(np.polyfit(np.arange(n) / fs, x[:n], 1)[0]) / (np.max(np.abs(np.diff(x))) * fs))
+        pr = prepare_residual(rec.torque_ref, fs, motor_position=rec.motor_position, motor_velocity=v,
+                              cutoff_hz=min(300.0, 0.4 * fs), load_position=rec.load_position)
+        shaft = simulate_load(pr, p.J_l, p.B_l, p.K, p.D, math.radians(m.epsilon_deg)).shaft_torque
+        level = _CROSSING_LEVEL * np.max(np.abs(shaft))
+        sides.append(int(min(np.sum(shaft > level), np.sum(shaft < -level))))
+    return [f"family seed {DEFAULT_SEED}, {len(power)} members: changed by the checks {changed}",
+            f"  correlation of torque and velocity: lowest {min(power):+.3f} (reversed below {c.REVERSED_POWER:+g})",
+            f"  motor position / velocity step ratio: {min(motor):.6f}–{max(motor):.6f} (acted on outside "
+            f"{c.SCALE_RANGE[0]:g}–{c.SCALE_RANGE[1]:g})",
+            f"  load / motor displacement ratio (load velocity ignored): {min(load):.4f}–{max(load):.4f}",
+            f"  speed over the first ms / top speed: largest {max(moving):.2e} (moving above {c._START_MOVING:g})",
+            f"  shaft torque at the truth, samples on its rarer side: fewest {min(sides)} (not crossing below {_CROSSING_SAMPLES})"]
+
+
+def main() -> int:
+    print(__doc__.split("\n\n")[0].replace("\n", " "))
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, (name, rec) in enumerate(cases().items()):
+            path, out = Path(tmp) / f"case{i}.csv", Path(tmp) / f"out{i}"
+            write_csv(path, rec)
+            code, seconds, err = replay(path, out)
+            print(row(name, code, seconds, err, out), flush=True)
+    for line in family_margins():
+        print(line, flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
