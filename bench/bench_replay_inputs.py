@@ -2,7 +2,8 @@
 what ``commission --replay X.csv --no-tune`` gives on each, and how long it takes.
 
 The source is the reference plant (ε 0.4°, 1e-4 N·m torque noise) under the default 10 s chirp at 8 kHz;
-each case changes 3 s of it (or all 10 s) the way a real log can differ. Each line: the exit code, the wall
+each case changes 3 s of it (or all 10 s) the way a real log can differ (two give the velocity alone, as a
+signal sampled at the sample instants rather than a difference of counts). Each line: the exit code, the wall
 time of the command in a fresh process (numba's kernels already cached), ε and its interval, the errors of
 J_m, J_l and K against the plant, whether the result is flagged, and the first note or error.
 
@@ -23,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.signal import lfilter
 
 from commission.config import ExcitationConfig
 from commission.csvlog import write_csv
@@ -48,6 +50,8 @@ def cases() -> dict[str, Recording]:
                                  motor_position=full.motor_position[a:a + N3])
 
     wrapped = np.mod(full.motor_position + math.pi, 2 * math.pi) - math.pi
+    a = math.exp(-2 * math.pi * 500.0 / FS)
+    filtered = lfilter([1 - a], [1, -a], full.motor_velocity)
     return {
         "as simulated (3 s)": head,
         "single-turn position (10 s)": full.replace(motor_position=wrapped),
@@ -57,7 +61,21 @@ def cases() -> dict[str, Recording]:
         "velocity in rpm": head.replace(motor_velocity=head.motor_velocity * 60 / (2 * math.pi)),
         "cut at 3.5 s (moving, one reversal)": cut(3.5),
         "cut at 1 s (moving, never reverses)": cut(1.0),
+        "velocity only, sampled (10 s)": sampled_velocity(),
+        "velocity only, filtered 500 Hz (10 s)": Recording.uniform(FS, full.torque_ref, filtered),
     }
+
+
+def sampled_velocity() -> Recording:
+    """The reference run with its motor velocity sampled at the sample instants (a simulator's state), velocity
+    only: the plant at twice the rate with a 32-bit encoder, the central difference across each sample."""
+    tau = chirp(ExcitationConfig()).samples
+    r = Plant(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.40, torque_noise_nm=1e-4, seed=11,
+                              encoder_bits_motor=32), 2 * FS).run_torque(np.repeat(tau, 2))
+    x = np.concatenate((r.motor_position, [2 * r.motor_position[-1] - r.motor_position[-2]]))
+    k = np.arange(1, tau.size)
+    v = np.concatenate(([0.0], (x[2 * k + 1] - x[2 * k - 1]) * FS))
+    return Recording.uniform(FS, tau, v + 1e-7 * np.random.default_rng(3).standard_normal(v.size))
 
 
 def replay(path: Path, out: Path) -> tuple[int, float, str]:
@@ -91,11 +109,14 @@ def family_margins() -> list[str]:
     from commission.ident.residual import motor_position_samples, prepare_residual, simulate_load
     from sim_drive.family import DEFAULT_SEED, family
 
-    power, motor, load, moving, sides, changed = [], [], [], [], [], 0
+    power, motor, load, moving, sides, changed, velocity_only, off_lattice = [], [], [], [], [], 0, 0, 0
     for m in family(DEFAULT_SEED):
         rec = m.simulate()
         fs, p = rec.sample_rate_hz, m.two_mass
         changed += c.reconcile(rec)[1] != []
+        if rec.motor_position is None:
+            velocity_only += 1
+            off_lattice += not c._on_a_lattice(rec.motor_velocity, rec.lost_mask)
         v = rec.motor_velocity
         power.append(float(np.mean(rec.torque_ref * v) / (np.std(rec.torque_ref) * np.std(v))))
         x = motor_position_samples(rec.motor_position, v, fs)
@@ -116,6 +137,7 @@ def family_margins() -> list[str]:
             f"{c.SCALE_RANGE[0]:g}–{c.SCALE_RANGE[1]:g})",
             f"  load / motor displacement ratio (load velocity ignored): {min(load):.4f}–{max(load):.4f}",
             f"  speed over the first ms / top speed: largest {max(moving):.2e} (moving above {c._START_MOVING:g})",
+            f"  velocity-only members whose velocity is no difference of counts: {off_lattice} of {velocity_only}",
             f"  shaft torque at the truth, samples on its rarer side: fewest {min(sides)} (not crossing below {_CROSSING_SAMPLES})"]
 
 

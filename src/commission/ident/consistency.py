@@ -16,6 +16,13 @@ is a unit error no one can undo from the record (an error that names the ratio).
 absorbs the work the torque does on it: mean(τ·v) > 0. A record where it is clearly negative has its
 torque's sign reversed against the encoder: identified with the torque reversed, and said so.
 
+A velocity without a position: the drive's velocity is the difference of its encoder's counts over a
+sample (v[k] = (x[k] − x[k−1])/Ts), so Ts·v lies on a lattice of whole counts, and the position is its
+running sum. A velocity off any such lattice is a signal sampled at the sample instants (a simulator's
+state, an observer's estimate, a filter's output): its running sum would put the position half a sample
+early, a lead no delay or lag of the model can explain; such a velocity is averaged over each sample
+period ((v[k−1] + v[k])/2, the trapezoid's step) before the position is rebuilt from it.
+
 Where the record starts (:class:`InitialMotion`): every experiment this tool runs starts at rest, but a
 record cut from a longer log may start in motion; the predictor and the load simulation then start at the
 speed and acceleration of its first millisecond.
@@ -32,7 +39,7 @@ from numpy.typing import NDArray
 from ..exceptions import IdentificationError
 from ..recording import Recording
 
-__all__ = ["InitialMotion", "initial_motion", "reconcile", "unwrap_positions"]
+__all__ = ["InitialMotion", "initial_motion", "rebuilt_position_noise_rad", "reconcile", "unwrap_positions"]
 
 #: A step beyond this many times the largest motion a sample allows is a jump (a 2π wrap is told
 #: from motion up to ~0.5 rad per sample, 4,000 rad/s at 8 kHz).
@@ -51,6 +58,12 @@ SCALE_MOVING = 0.3
 #: Correlation of torque and velocity below which the torque's sign is reversed (a passive plant's is
 #: positive; bench/results/RESULTS.md has the family's lowest).
 REVERSED_POWER = -0.02
+#: A velocity is a difference of counts when this share of its samples' motions lie within
+#: ``LATTICE_TOLERANCE`` counts of a whole number of counts (one count: the smallest motion, or a
+#: whole fraction of it up to ``LATTICE_DIVISORS``: a record may never move by just one count) ...
+LATTICE_SHARE = 0.99
+LATTICE_TOLERANCE = 0.01
+LATTICE_DIVISORS = 4
 
 
 def reconcile(rec: Recording) -> tuple[Recording, list[str]]:
@@ -74,6 +87,12 @@ def reconcile(rec: Recording) -> tuple[Recording, list[str]]:
                      else np.concatenate(([0.0], np.cumsum(_motion(rec.motor_velocity, rec.t)))))
             ratio = _displacement_ratio(rec.load_position, motor)
         rec = _judged(rec, "load_position", ratio, notes)
+    if rec.motor_position is None and not _on_a_lattice(rec.motor_velocity, rec.lost_mask):
+        v = rec.motor_velocity
+        notes.append("the motor velocity is no difference of encoder counts (it lies on no lattice of whole "
+                     "counts): taken as sampled at the sample instants, and averaged over each sample period "
+                     "before the position is rebuilt from it")
+        rec = rec.replace(motor_velocity=np.concatenate((v[:1], 0.5 * (v[1:] + v[:-1]))))
     v = rec.motor_velocity
     power = float(np.mean(rec.torque_ref * v) / max(float(np.std(rec.torque_ref) * np.std(v)), 1e-300))
     if power < REVERSED_POWER:
@@ -99,6 +118,34 @@ def _step_ratio(x: NDArray[np.float64] | None, motion: NDArray[np.float64]) -> f
     if np.count_nonzero(moving) < 20:
         return None
     return float(np.median(np.diff(x)[moving] / motion[moving]))
+
+
+def rebuilt_position_noise_rad(rec: Recording) -> float:
+    """The error of the motor position rebuilt from a sampled velocity by the trapezoid [rad], standard
+    deviation (0 for a record with a position, or whose velocity is a difference of counts, rebuilt
+    exactly): the trapezoid misses Ts³/12·v̈ per sample, which sums to Ts²/12 times the change of the
+    acceleration within the samples since the record's start (the shaft's share of it); taken as twice
+    Ts²/12 times the acceleration's RMS, that change being a difference of two accelerations."""
+    if rec.motor_position is not None or _on_a_lattice(rec.motor_velocity, rec.lost_mask):
+        return 0.0
+    ts = 1.0 / rec.sample_rate_hz
+    return ts / 6.0 * float(np.sqrt(np.mean(np.diff(rec.motor_velocity) ** 2)))
+
+
+def _on_a_lattice(velocity: NDArray[np.float64], lost: NDArray[np.bool_]) -> bool:
+    """Whether each sample of ``velocity`` (shape (N,), [rad/s]) is a whole number of one encoder count per
+    sample period (True also when too few samples move to tell); the samples a link lost (``lost``),
+    interpolated, are left out. (The velocity's own values: a streamed record's sample times jitter, the
+    drive's period does not.)"""
+    d = np.abs(velocity[~lost])
+    d = d[d > 1e-12 * float(np.max(d, initial=0.0))]
+    if d.size < 20:
+        return True
+    for divisor in range(1, LATTICE_DIVISORS + 1):
+        counts = d * (divisor / float(np.min(d)))
+        if np.mean(np.abs(counts - np.round(counts)) <= LATTICE_TOLERANCE) >= LATTICE_SHARE:
+            return True
+    return False
 
 
 def _displacement_ratio(x: NDArray[np.float64], reference: NDArray[np.float64]) -> float | None:

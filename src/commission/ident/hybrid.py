@@ -618,6 +618,7 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool
     """The estimate: prediction errors of the Kalman predictor of the whole state, from the torque-residual fit
     (``hedged``: :func:`commission.ident.estimator.kalman_fit`'s), again with every configured term when it
     needs a disturbance (``retry``)."""
+    from .consistency import rebuilt_position_noise_rad
     from .estimator import kalman_fit, kalman_resettled
     from .kalman import kalman_problem
     from .residual import motor_position_samples
@@ -628,7 +629,7 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool
             rec.torque_ref, motor_position_samples(rec.motor_position, rec.motor_velocity, run.fs), run.fs,
             load_position=rec.load_position if run.use_load else None,
             velocity_scale_rad_s=run.opt.coulomb_velocity_scale_rad_s, lost=run.lost if run.lost.any() else None,
-            delay_samples=run.delay_samples)
+            delay_samples=run.delay_samples, motor_noise_rad=rebuilt_position_noise_rad(rec))
     kp = run.kalman
     if run.delay_samples and start.process_noise_nm == 0.0:
         # a torque-residual fit's current loop stands in for the delay too

@@ -94,9 +94,11 @@ def position_step_rad(position: NDArray[np.float64], measured: NDArray[np.bool_]
 
 def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.float64], sample_rate_hz: float, *,
                    load_position: NDArray[np.float64] | None = None, velocity_scale_rad_s: float = 2e-3,
-                   lost: NDArray[np.bool_] | None = None, delay_samples: int = 0) -> KalmanProblem:
+                   lost: NDArray[np.bool_] | None = None, delay_samples: int = 0,
+                   motor_noise_rad: float = 0.0) -> KalmanProblem:
     """The predictor's view of a record (see :class:`KalmanProblem`); ``torque_ref`` [N·m], shape (N,), the
-    reference as logged, acting ``delay_samples`` later."""
+    reference as logged, acting ``delay_samples`` later; ``motor_noise_rad``: the motor position's error
+    beside its quantization (standard deviation [rad]: a position rebuilt from a sampled velocity)."""
     fs = float(sample_rate_hz)
     y = np.ascontiguousarray(motor_position, dtype=np.float64)
     speed = np.diff(y) * fs
@@ -105,6 +107,7 @@ def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.f
                                                 if load_position is not None else [])
     # a record that never moves by one step has no quantization to speak of: a floor far below any encoder's
     noise = np.array([max(s, 1e-9) / math.sqrt(12.0) for s in steps])
+    noise[0] = max(noise[0], motor_noise_rad)
     tau = np.ascontiguousarray(torque_ref, dtype=np.float64)
     d = int(delay_samples)
     if not 0 <= d < tau.size:
