@@ -151,3 +151,35 @@ def test_write_refuses_what_it_could_not_read_back(tmp_path: Path) -> None:
         write_csv(tmp_path / "j.csv", jittered)
     with pytest.raises(RecordingError, match="disagrees"):
         write_csv(tmp_path / "r.csv", rec.replace(sample_rate_hz=4000.0))
+
+
+def _table(t: np.ndarray) -> str:
+    return "t,torque_ref,motor_velocity\n" + "".join(f"{x!r},{k % 7},{k % 5}\n" for k, x in enumerate(t.tolist()))
+
+
+def test_a_time_column_in_milliseconds_is_one_error_that_says_so(tmp_path: Path) -> None:
+    t = np.arange(2000) * 0.125  # 8 kHz in ms
+    assert_error(write(tmp_path, _table(t)), "the t column gives 8 Hz", "t must be in seconds",
+                 "in milliseconds, the log is at 8000 Hz")
+
+
+@pytest.mark.parametrize("name, t", [
+    # a Unix time in float64 resolves 0.24 µs: its 125 µs intervals jitter by 0.2 %
+    ("unix time", 1.764e9 + np.arange(24000) / 8000.0),
+    # a spreadsheet's four decimals: 125 µs intervals read as 100 or 200 µs
+    ("four decimals", np.round(np.arange(24000) / 8000.0, 4)),
+])
+def test_a_rounded_time_column_is_read_on_its_uniform_grid(tmp_path: Path, name: str, t: np.ndarray) -> None:
+    assert np.max(np.abs(np.diff(t) * 8000.0 - 1.0)) > 1e-3  # (what the interval check alone refused)
+    rec = read_csv(write(tmp_path, _table(t)))
+    assert len(rec) == t.size and rec.is_uniform
+    assert rec.sample_rate_hz == pytest.approx(8000.0, rel=1e-7)
+    exact = t[0] + np.arange(t.size) / 8000.0
+    # (within the float64's own resolution at a Unix time, 0.24 µs)
+    assert np.max(np.abs((rec.t - rec.t[0]) - (exact - exact[0]))) < 0.3e-6
+    assert rec.torque_ref.tolist() == [float(k % 7) for k in range(t.size)]
+
+
+def test_a_rounded_time_column_with_a_sample_missing_is_refused(tmp_path: Path) -> None:
+    t = np.round(np.delete(np.arange(24000), 12000) / 8000.0, 4)
+    assert_error(write(tmp_path, _table(t)), "non-uniform sampling", "t rounded to 0.0001 s", "off the uniform grid")

@@ -19,9 +19,12 @@ separator is ``,`` (``;`` or tab when the header has no comma).
 The file is read line by line (a regular file; lines of at most 64 Ki characters, at most
 4.8 million data rows), so its size bounds neither the memory nor the time before an error.
 
-Sampling must be uniform: every interval within 1e-3 of the median interval.
-The sample rate is ``sample_rate_hz`` from its directive when given (it must
-agree with the data), else 1 / median interval. ``start_time`` is the
+Sampling must be uniform: every interval within 1e-3 of the median interval,
+or, for a time column rounded coarser than that (a Unix time in float64, a
+spreadsheet's four decimals), every sample within half its rounding step of a
+uniform grid; and at least 50 Hz (a ``t`` in milliseconds is an error that says
+so). The sample rate is ``sample_rate_hz`` from its directive when given (it must
+agree with the data), else 1 / median interval (or the rounded column's grid). ``start_time`` is the
 directive's ISO-8601 time when given, else the file's modification time in
 UTC. ``Recording.metadata["source"]`` is the file name; the drive is unknown.
 
@@ -48,6 +51,11 @@ __all__ = ["UNIFORM_TOLERANCE", "read_csv", "write_csv"]
 
 #: Largest deviation of a sample interval from the median one, relative to it.
 UNIFORM_TOLERANCE = 1e-3
+#: A time column whose interval changes on this share of its samples (and on 10 at least) is rounded,
+#: not jittered or missing a sample ...
+ROUNDED_SHARE = 0.05
+#: Slowest sample rate read [Hz]: below it a time column is in other units than seconds.
+MIN_SAMPLE_RATE_HZ = 50.0
 #: Longest line read (a row of six floats written with repr is under 150 characters).
 MAX_LINE_CHARS = 1 << 16
 
@@ -55,6 +63,43 @@ _UNITS = {"t": "s", **SIGNAL_UNITS}
 _UNIT_ALIASES = {"N·m": {"N·m", "Nm", "N*m", "N.m", "N m", "N⋅m"}}
 _HEADER_CELL = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(?:\[\s*([^\]]*?)\s*\])?\s*$")
 _DIRECTIVE = re.compile(r"^#\s*(sample_rate_hz|start_time)\s*[:=]\s*(.*?)\s*$")
+
+
+def _sample_period(t: np.ndarray, p: object, line_numbers: Sequence[int]) -> tuple[float, np.ndarray]:
+    """The sample period [s] of the increasing time column ``t``, shape (N,), and the sample times: its
+    median interval, every interval within ``UNIFORM_TOLERANCE`` of it, and ``t``; or, when ``t`` is
+    rounded coarser than that (a Unix time in float64, a spreadsheet's decimals), the period of the
+    uniform grid through its samples, fitted by least squares, every sample within half the rounding
+    step of it, and that grid (the rounding is no jitter of the drive's clock to resample from).
+
+    :raises LogFormatError: the sampling is not uniform (the line of the first sample that is not).
+    """
+    dt = np.diff(t)
+    dt_med = float(np.median(dt))
+    change = np.abs(np.diff(dt))
+    change = change[change > 1e-9 * dt_med]
+    # a rounded column changes its interval by whole rounding steps, often; one gap or glitch does not
+    step = float(np.min(change)) if change.size >= max(ROUNDED_SHARE * dt.size, 10) else 0.0
+    if step <= UNIFORM_TOLERANCE * dt_med:
+        off = np.abs(dt - dt_med) > UNIFORM_TOLERANCE * dt_med
+        if off.any():
+            k = int(np.argmax(off)) + 1
+            raise LogFormatError(
+                f"{p}: line {line_numbers[k]}: non-uniform sampling (interval {dt[k - 1]:.9g} s, "
+                f"expected {dt_med:.9g} s within {UNIFORM_TOLERANCE:g} of it)"
+            )
+        return dt_med, t
+    k = np.arange(t.size) - 0.5 * (t.size - 1)
+    rel = t - float(np.mean(t))
+    period = float(np.dot(k, rel) / np.dot(k, k))  # the grid by least squares: its ties round either way
+    off = np.abs(rel - k * period) > 0.5 * step + UNIFORM_TOLERANCE * period
+    if off.any() or step >= period:
+        i = int(np.argmax(off))
+        raise LogFormatError(
+            f"{p}: line {line_numbers[i]}: non-uniform sampling (t rounded to {step:.3g} s: t={float(t[i])!r} s "
+            f"lies off the uniform grid of {period:.9g} s by more than half of that)"
+        )
+    return period, float(np.mean(t)) + k * period
 
 
 def _unit_ok(expected: str, given: str) -> bool:
@@ -179,16 +224,13 @@ def _read(p: str, lines: _Lines, mtime: float) -> Recording:
         raise LogFormatError(
             f"{p}: line {line_numbers[k]}: time does not increase (t={float(t[k])!r} s after t={float(t[k - 1])!r} s)"
         )
-    dt_med = float(np.median(dt))
-    off = np.abs(dt - dt_med) > UNIFORM_TOLERANCE * dt_med
-    if off.any():
-        k = int(np.argmax(off)) + 1
-        raise LogFormatError(
-            f"{p}: line {line_numbers[k]}: non-uniform sampling (interval {dt[k - 1]:.9g} s, "
-            f"expected {dt_med:.9g} s within {UNIFORM_TOLERANCE:g} of it)"
-        )
-
+    dt_med, t = _sample_period(t, p, line_numbers)
     sample_rate_hz = 1.0 / dt_med
+    if sample_rate_hz < MIN_SAMPLE_RATE_HZ:
+        raise LogFormatError(
+            f"{p}: the t column gives {sample_rate_hz:.6g} Hz, slower than any servo drive's log: t must be in "
+            f"seconds (if it is in milliseconds, the log is at {1e3 * sample_rate_hz:.6g} Hz)"
+        )
     if "sample_rate_hz" in directives:
         lineno, value = directives["sample_rate_hz"]
         try:
