@@ -2,8 +2,10 @@
 what ``commission --replay X.csv --no-tune`` gives on each, and how long it takes.
 
 The source is the reference plant (ε 0.4°, 1e-4 N·m torque noise) under the default 10 s chirp at 8 kHz;
-each case changes 3 s of it (or all 10 s) the way a real log can differ (two give the velocity alone, as a
-signal sampled at the sample instants rather than a difference of counts). Each line: the exit code, the wall
+each case changes 3 s of it (or all 10 s) the way a real log can differ (one pairs each torque with the next
+sample's encoders; two give the velocity alone, as a
+signal sampled at the sample instants rather than a difference of counts); then the 3 s record with its
+time column written as loggers and spreadsheets write it. Each line: the exit code, the wall
 time of the command in a fresh process (numba's kernels already cached), ε and its interval, the errors of
 J_m, J_l and K against the plant, whether the result is flagged, and the first note or error.
 
@@ -61,6 +63,8 @@ def cases() -> dict[str, Recording]:
         "velocity in rpm": head.replace(motor_velocity=head.motor_velocity * 60 / (2 * math.pi)),
         "cut at 3.5 s (moving, one reversal)": cut(3.5),
         "cut at 1 s (moving, never reverses)": cut(1.0),
+        "encoders a sample late (10 s)": Recording.uniform(FS, full.torque_ref[:-1], full.motor_velocity[1:],
+                                                           motor_position=full.motor_position[1:]),
         "velocity only, sampled (10 s)": sampled_velocity(),
         "velocity only, filtered 500 Hz (10 s)": Recording.uniform(FS, full.torque_ref, filtered),
     }
@@ -141,12 +145,34 @@ def family_margins() -> list[str]:
             f"  shaft torque at the truth, samples on its rarer side: fewest {min(sides)} (not crossing below {_CROSSING_SAMPLES})"]
 
 
+#: How a spreadsheet or a logger may write the time column of the 3 s record (k: sample index).
+TIME_COLUMNS = {
+    "t as a Unix time (0.24 µs resolution)": lambda k: 1.764e9 + k / FS,
+    "t rounded to 0.1 ms": lambda k: np.round(k / FS, 4),
+    "t in milliseconds": lambda k: k * 1e3 / FS,
+}
+
+
+def write_with_time(path: Path, rec: Recording, t: np.ndarray) -> None:
+    """``rec`` as a CSV whose time column is ``t`` [s] (no directives: the rate comes from t)."""
+    cols = [t, rec.torque_ref, rec.motor_velocity, rec.motor_position]
+    path.write_text("t,torque_ref,motor_velocity,motor_position\n"
+                    + "".join(",".join(map(repr, map(float, r))) + "\n" for r in zip(*cols)))
+
+
 def main() -> int:
     print(__doc__.split("\n\n")[0].replace("\n", " "))
     with tempfile.TemporaryDirectory() as tmp:
-        for i, (name, rec) in enumerate(cases().items()):
+        all_cases = cases()
+        for i, (name, rec) in enumerate(all_cases.items()):
             path, out = Path(tmp) / f"case{i}.csv", Path(tmp) / f"out{i}"
             write_csv(path, rec)
+            code, seconds, err = replay(path, out)
+            print(row(name, code, seconds, err, out), flush=True)
+        head = all_cases["as simulated (3 s)"]
+        for i, (name, time_of) in enumerate(TIME_COLUMNS.items()):
+            path, out = Path(tmp) / f"time{i}.csv", Path(tmp) / f"tout{i}"
+            write_with_time(path, head, time_of(np.arange(len(head))))
             code, seconds, err = replay(path, out)
             print(row(name, code, seconds, err, out), flush=True)
     for line in family_margins():

@@ -86,7 +86,23 @@ def test_a_drives_computation_delay_is_predicted_in_whole_samples() -> None:
         wrong = innovations(plain, REFERENCE_PLANT, math.radians(0.4), **{**kw, "lag_s": lag})
         assert wrong is not None and _rms(wrong.normalized) > 3 * _rms(right.normalized)
     with pytest.raises(ValueError):
-        kalman_problem(tau, r.motor_position, fs, delay_samples=-1)
+        kalman_problem(tau, r.motor_position, fs, delay_samples=tau.size)
+
+
+def test_encoders_latched_a_sample_after_the_torque_are_predicted_a_sample_earlier() -> None:
+    """A log that puts each torque beside the next sample's position (x[k+1]): the motion leads its torque
+    by a sample, which no lag can explain; with the torque taken a sample earlier (delay −1) the predictor's
+    errors at the true plant are the encoder's noise again."""
+    fs = 8000.0
+    tau, r = _record(fs, 3.0, encoder_bits_motor=20)
+    tau, x = tau[:-1], r.motor_position[1:]
+    early = kalman_problem(tau, x, fs, delay_samples=-1)
+    assert np.array_equal(early.torque_ref[:-1], tau[1:]) and early.torque_ref[-1] == tau[-1]
+    kw = dict(process_noise_nm=1e-4 * float(np.sqrt(np.mean(tau ** 2))))
+    right = innovations(early, REFERENCE_PLANT, math.radians(0.4), **kw)
+    assert right is not None and 0.8 < _rms(right.normalized) < 1.3
+    wrong = innovations(kalman_problem(tau, x, fs), REFERENCE_PLANT, math.radians(0.4), **kw)
+    assert wrong is not None and _rms(wrong.normalized) > 3 * _rms(right.normalized)
 
 
 def test_sigma_points_across_the_gap_turn_the_likelihoods_needle_into_a_basin() -> None:

@@ -110,7 +110,7 @@ def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.f
     noise[0] = max(noise[0], motor_noise_rad)
     tau = np.ascontiguousarray(torque_ref, dtype=np.float64)
     d = int(delay_samples)
-    if not 0 <= d < tau.size:
+    if not -tau.size < d < tau.size:
         raise ValueError(f"delay of {delay_samples} samples on a record of {tau.size}")
     return KalmanProblem(fs, _delayed(tau, d), y, None if load_position is None else np.ascontiguousarray(load_position, dtype=np.float64),
                          np.concatenate((np.tanh(speed / velocity_scale_rad_s), [0.0])), noise,
@@ -120,7 +120,10 @@ def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.f
 
 
 def _delayed(x: NDArray[np.float64], d: int) -> NDArray[np.float64]:
-    """``x`` acting ``d`` samples later, 0 before the record (shape kept)."""
+    """``x`` acting ``d`` samples later, 0 before the record (shape kept); ``d`` < 0: earlier (sensors latched
+    after the torque's sample), its last value held past the record."""
+    if d < 0:
+        return np.concatenate((x[-d:], np.full(-d, x[-1])))
     return np.concatenate((np.zeros(d), x[:x.size - d])) if d else x
 
 
