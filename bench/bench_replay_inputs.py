@@ -34,6 +34,7 @@ from commission.excitation import chirp
 from commission.ident.twomass import REFERENCE_PLANT
 from commission.recording import Recording
 from sim_drive.plant import Plant, PlantParameters
+from sim_drive.sampled import sampled_motor_velocity
 
 FS = 8000.0
 N3 = int(3 * FS)
@@ -72,14 +73,11 @@ def cases() -> dict[str, Recording]:
 
 def sampled_velocity() -> Recording:
     """The reference run with its motor velocity sampled at the sample instants (a simulator's state), velocity
-    only: the plant at twice the rate with a 32-bit encoder, the central difference across each sample."""
+    only."""
     tau = chirp(ExcitationConfig()).samples
-    r = Plant(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.40, torque_noise_nm=1e-4, seed=11,
-                              encoder_bits_motor=32), 2 * FS).run_torque(np.repeat(tau, 2))
-    x = np.concatenate((r.motor_position, [2 * r.motor_position[-1] - r.motor_position[-2]]))
-    k = np.arange(1, tau.size)
-    v = np.concatenate(([0.0], (x[2 * k + 1] - x[2 * k - 1]) * FS))
-    return Recording.uniform(FS, tau, v + 1e-7 * np.random.default_rng(3).standard_normal(v.size))
+    v, _ = sampled_motor_velocity(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.40,
+                                                  torque_noise_nm=1e-4, seed=11), tau, FS)
+    return Recording.uniform(FS, tau, v)
 
 
 def replay(path: Path, out: Path) -> tuple[int, float, str]:

@@ -183,18 +183,14 @@ def test_a_record_in_which_the_load_never_crosses_the_gap_says_it_does_not_deter
 
 @pytest.fixture(scope="module")
 def sampled() -> tuple[Recording, np.ndarray]:
-    """The reference run with a velocity sampled at the sample instants (a simulator's state, an observer's
-    estimate: no difference of counts), velocity only; and the motor position at the sample instants [rad].
-    The plant runs at twice the rate (each torque held for both halves) with a 32-bit encoder; the velocity
-    at sample k is the central difference across it, with a float's last digits as noise."""
+    """The reference run with a velocity sampled at the sample instants (no difference of counts), velocity
+    only; and the motor position at the sample instants [rad]."""
+    from sim_drive.sampled import sampled_motor_velocity
+
     tau = chirp(ExcitationConfig()).samples
-    r = Plant(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.40, torque_noise_nm=1e-4, seed=5,
-                              encoder_bits_motor=32), 2 * FS).run_torque(np.repeat(tau, 2))
-    x = np.concatenate((r.motor_position, [2 * r.motor_position[-1] - r.motor_position[-2]]))
-    k = np.arange(1, tau.size)
-    v = np.concatenate(([0.0], (x[2 * k + 1] - x[2 * k - 1]) * FS))
-    v += 1e-7 * np.random.default_rng(3).standard_normal(v.size)
-    return Recording.uniform(FS, tau, v), x[0:2 * tau.size:2]
+    v, x = sampled_motor_velocity(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.40,
+                                                  torque_noise_nm=1e-4, seed=5), tau, FS)
+    return Recording.uniform(FS, tau, v), x
 
 
 def test_a_velocity_that_is_a_difference_of_counts_is_left_as_it_is(run: Recording) -> None:
