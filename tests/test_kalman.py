@@ -89,6 +89,18 @@ def test_a_drives_computation_delay_is_predicted_in_whole_samples() -> None:
         kalman_problem(tau, r.motor_position, fs, delay_samples=tau.size)
 
 
+def test_the_encoders_step_of_a_record_that_never_stops() -> None:
+    """1-4 s of the reference run: the motor turns at 9-17 rad/s throughout, so no sample moves it by a
+    single step (the smallest move is ~190 steps, which set the quantization floor and the residual's
+    low-pass as if the encoder were 12-bit); a change of the move is a whole number of steps too."""
+    fs = 8000.0
+    tau, r = _record(fs, 4.0, encoder_bits_motor=20)
+    x = r.motor_position[int(fs):]
+    step = 2 * math.pi / 2**20
+    assert np.min(np.abs(np.diff(x))) > 100 * step
+    assert position_step_rad(x) == pytest.approx(step, rel=1e-6)
+
+
 def test_encoders_latched_a_sample_after_the_torque_are_predicted_a_sample_earlier() -> None:
     """A log that puts each torque beside the next sample's position (x[k+1]): the motion leads its torque
     by a sample, which no lag can explain; with the torque taken a sample earlier (delay −1) the predictor's

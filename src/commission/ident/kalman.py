@@ -83,13 +83,24 @@ class KalmanProblem:
 
 
 def position_step_rad(position: NDArray[np.float64], measured: NDArray[np.bool_] | None = None) -> float:
-    """An encoder's step [rad]: the smallest position change in its record (0: it never moved), between
-    samples both ``measured`` (an interpolated one a link lost may sit anywhere between two steps)."""
-    d = np.abs(np.diff(np.asarray(position, dtype=np.float64)))
-    if measured is not None:
-        d = d[measured[1:] & measured[:-1]]
-    d = d[d > 0]
-    return float(d.min()) if d.size else 0.0
+    """An encoder's step [rad]: the smallest position change between samples (0: it never moved), among
+    samples ``measured`` (an interpolated one a link lost may sit anywhere between two steps); divided by
+    the whole number of steps it holds where the axis never stops (a record cut from a running one), which
+    the smallest change of a move between samples counts (a change below 1e-8 of the largest move is a
+    float's rounding, not a step)."""
+    x = np.asarray(position, dtype=np.float64)
+    ok = np.ones(x.size, dtype=np.bool_) if measured is None else np.asarray(measured, dtype=np.bool_)
+    d1 = np.diff(x)
+    d2 = np.abs(np.diff(d1)[ok[2:] & ok[1:-1] & ok[:-2]])
+    d1 = np.abs(d1[ok[1:] & ok[:-1]])
+    d1 = d1[d1 > 0]
+    if not d1.size:
+        return 0.0
+    smallest = float(d1.min())
+    d2 = d2[d2 > 1e-8 * float(d1.max())]
+    # the smallest move as a whole number of the smallest change of a move (1 when the axis ever moved by
+    # one step: that move itself, to the last bit)
+    return smallest / max(round(smallest / float(d2.min())), 1) if d2.size else smallest
 
 
 def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.float64], sample_rate_hz: float, *,
