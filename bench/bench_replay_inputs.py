@@ -2,10 +2,10 @@
 what ``commission --replay X.csv --no-tune`` gives on each, and how long it takes.
 
 The source is the reference plant (ε 0.4°, 1e-4 N·m torque noise) under the default 10 s chirp at 8 kHz;
-each case changes 3 s of it (or all 10 s) the way a real log can differ (one pairs each torque with the next
-sample's encoders; two give the velocity alone, as a
-signal sampled at the sample instants rather than a difference of counts); then the 3 s record with its
-time column written as loggers and spreadsheets write it. Each line: the exit code, the wall
+each case changes 3 s of it (or all 10 s) the way a real log can differ (two latch the encoders
+half a sample and a sample after their torque; two give the velocity alone, as a signal sampled at the
+sample instants rather than a difference of counts); then the 3 s record with its time column written as
+loggers and spreadsheets write it. Each line: the exit code, the wall
 time of the command in a fresh process (numba's kernels already cached), ε and its interval, the errors of
 J_m, J_l and K against the plant, whether the result is flagged, and the first note or error.
 
@@ -66,9 +66,20 @@ def cases() -> dict[str, Recording]:
         "cut at 1 s (moving, never reverses)": cut(1.0),
         "encoders a sample late (10 s)": Recording.uniform(FS, full.torque_ref[:-1], full.motor_velocity[1:],
                                                            motor_position=full.motor_position[1:]),
+        "encoders half a sample late (10 s)": half_sample_late(),
         "velocity only, sampled (10 s)": sampled_velocity(),
         "velocity only, filtered 500 Hz (10 s)": Recording.uniform(FS, full.torque_ref, filtered),
     }
+
+
+def half_sample_late() -> Recording:
+    """The reference run with its encoder latched half a sample after each torque (mid-cycle): the plant at
+    twice the rate, the odd samples."""
+    tau = chirp(ExcitationConfig()).samples
+    r = Plant(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.40, torque_noise_nm=1e-4, seed=11),
+              2 * FS).run_torque(np.repeat(tau, 2))
+    x = r.motor_position[1::2]
+    return Recording.uniform(FS, tau, np.diff(x, prepend=x[0]) * FS, motor_position=x)
 
 
 def sampled_velocity() -> Recording:

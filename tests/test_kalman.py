@@ -110,6 +110,10 @@ def test_encoders_latched_a_sample_after_the_torque_are_predicted_a_sample_earli
     tau, x = tau[:-1], r.motor_position[1:]
     early = kalman_problem(tau, x, fs, delay_samples=-1)
     assert np.array_equal(early.torque_ref[:-1], tau[1:]) and early.torque_ref[-1] == tau[-1]
+    half = kalman_problem(tau, x, fs, delay_samples=-0.5)  # a mid-cycle latch: the hold half a sample earlier
+    np.testing.assert_allclose(half.torque_ref[:-1], 0.5 * (tau[:-1] + tau[1:]), rtol=0, atol=1e-15)
+    with pytest.raises(ValueError):
+        kalman_problem(tau, x, fs, delay_samples=0.5)  # (a lag stands in for fractions of a delay)
     kw = dict(process_noise_nm=1e-4 * float(np.sqrt(np.mean(tau ** 2))))
     right = innovations(early, REFERENCE_PLANT, math.radians(0.4), **kw)
     assert right is not None and 0.8 < _rms(right.normalized) < 1.3

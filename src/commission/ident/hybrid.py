@@ -31,7 +31,7 @@ from __future__ import annotations
 import functools
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -184,8 +184,9 @@ class _Run:
     epsilon_searched_rad: float = 0.0
     """Upper bound of ε over every Kalman fit [rad]: a result the record does not determine says ε lies
     somewhere up to it (or up to the largest gap the scan considers)."""
-    delay_samples: int = 0
-    """Whole samples the torque acts after its reference beyond the hold's own (:func:`_delay_stage`)."""
+    delay_samples: float = 0
+    """Whole samples the torque acts after its reference beyond the hold's own; negative (−½ or −1): the
+    encoders latched that long after the torque (:func:`_delay_stage`)."""
     kalman: Any = None
     """The Kalman predictor's problem (commission.ident.kalman.KalmanProblem) at ``delay_samples``, built by
     the first Kalman fit."""
@@ -525,17 +526,21 @@ def _stiffer_starts(run: _Run, cell: Any, pem: PemFit) -> tuple[_Run, Any, PemFi
     return chosen, c, p, tried
 
 
-def _delay_candidates(run: _Run, pem: PemFit) -> range:
+def _delay_candidates(run: _Run, pem: PemFit) -> Sequence[float]:
     """The whole-sample torque delays worth trying: where the estimate needs a disturbance and its current
     loop's lag spans whole samples (a delay the first-order lag stands in for); or, where it has no lag
-    to speak of, one sample less than the hold's own (the encoders latched a sample after the torque:
-    motion the model's lag cannot put before its torque)."""
+    to speak of, half a sample and a sample less than the hold's own (the encoders latched that long after
+    the torque: motion the model's lag cannot put before its torque)."""
     if not _needs_disturbance(run, pem):
         return range(0)
     lag = pem.lag_s * run.fs if pem.terms.current_loop else 0.0
     if lag < 0.5:
-        return range(-1, -2, -1)
+        return _LEADS
     return range(1, min(_MAX_DELAY_SAMPLES, int(lag)) + 1)
+
+
+#: The encoders' latching after the torque tried, in samples (a mid-cycle encoder latch, a log a sample off).
+_LEADS = (-0.5, -1.0)
 
 
 def _delay_stage(run: _Run, pem: PemFit) -> tuple[PemFit, list[dict[str, float]]]:
@@ -550,9 +555,10 @@ def _delay_stage(run: _Run, pem: PemFit) -> tuple[PemFit, list[dict[str, float]]
     first delay that does not pay for itself seeds one more fit at the kept delay (:func:`_seeded_by_delay`).
 
     With no lag to shorten, the torque a sample earlier (delay −1): a log that puts each torque beside the
-    next sample's position, whose motion leads its torque. Kept only when the record then needs no
-    disturbance: on the reference plant so logged the estimate was flagged (K +10 %) after 84 s; a sample
-    earlier it is exact."""
+    next sample's position, whose motion leads its torque; half a sample first (an encoder latched mid-cycle,
+    the torque interpolated). Kept only when the record then needs no disturbance: on the reference plant
+    logged a sample late the estimate was flagged (K +10 %) after 84 s, latched half a sample late (K +9 %)
+    after 74 s; with the torque that much earlier both are exact."""
     tried = [{"delay_samples": 0, "negative_log_likelihood": _likelihood_cost(pem)}]
     best, best_d, spent = pem, 0, pem.evaluations
     rejected: tuple[int, PemFit] | None = None
@@ -565,20 +571,24 @@ def _delay_stage(run: _Run, pem: PemFit) -> tuple[PemFit, list[dict[str, float]]
             break
         spent += other.evaluations
         tried.append({"delay_samples": d, "negative_log_likelihood": _likelihood_cost(other)})
-        # (a torque a sample early is kept only when it explains the record: a misaligned log, not a basin)
-        if not _pays_for(run.kalman, best, other, 1) or (d < 0 and _needs_disturbance(run, other)):
+        if not _pays_for(run.kalman, best, other, 1):
             rejected = (d, other)
             break  # the delays are tried while each makes the record more likely
         best, best_d = other, d
+    # (a torque earlier than logged is kept only when it explains the record: a misaligned log, not a basin)
+    if best_d < 0 and _needs_disturbance(run, best):
+        best, best_d = pem, 0
     run.delay_samples = best_d
     if rejected is not None and rejected[0] > 0:
         best, seeded = _seeded_by_delay(run, best, *rejected, tried)
         spent += seeded
     if best_d < 0:
-        run.notes.append("the encoders are latched a sample after the torque they answer (each torque is logged "
-                         "beside the next sample's position): the torque is taken a sample earlier, and the record "
-                         f"is {_likelier(tried[0]['negative_log_likelihood'], _likelihood_cost(best))}× as likely "
-                         "per sample")
+        when, how = (("half a sample", "mid-cycle") if best_d == -0.5 else
+                     ("a sample", "each torque logged beside the next sample's position"))
+        run.notes.append(f"the encoders are latched {when} after the torque they answer ({how}): the torque is taken "
+                         f"{when} earlier, and the record is "
+                         f"{_likelier(tried[0]['negative_log_likelihood'], _likelihood_cost(best))}× as likely per "
+                         "sample")
     elif best_d:
         run.notes.append(f"the torque acts {best_d} sample{'s' if best_d > 1 else ''} after its reference beyond the "
                          "hold's own (the drive's computation and encoder delays): the record is "
@@ -828,7 +838,7 @@ def _friction(pem: PemFit, opt: IdentificationOptions) -> dict[str, Any] | None:
     return out
 
 
-def _current_loop(pem: PemFit, delay_samples: int = 0) -> dict[str, Any] | None:
+def _current_loop(pem: PemFit, delay_samples: float = 0) -> dict[str, Any] | None:
     if not pem.terms.current_loop or pem.lag_s <= 0:
         return {"delay_samples": delay_samples} if delay_samples else None
     tc, half = pem.lag_s, 1.96e-6 * pem.stderr("T_c_us")
@@ -839,7 +849,7 @@ def _current_loop(pem: PemFit, delay_samples: int = 0) -> dict[str, Any] | None:
 
 
 def _step5(rec: Recording, frd: Any, params: TwoMassParameters, eps: float, lag_s: float = 0.0,
-           delay_samples: int = 0) -> float:
+           delay_samples: float = 0) -> float:
     """Paper step 5: FRD of the open-loop dead-zone simulation vs the measured FRD (a kept current
     loop's lag enters as its exact mean over each held sample, a torque delay in whole samples)."""
     from scipy.signal import lfilter
@@ -849,12 +859,16 @@ def _step5(rec: Recording, frd: Any, params: TwoMassParameters, eps: float, lag_
     from .paper import frd_error
 
     torque = rec.torque_ref
+    if delay_samples < 0:  # a lead: the torque itself taken earlier (as the predictor took it)
+        from .kalman import delayed_torque
+
+        torque, delay_samples = delayed_torque(torque, delay_samples), 0
     if lag_s > 0.0:
         ts = 1.0 / rec.sample_rate_hz
         a = math.exp(-ts / lag_s)
         state = lfilter([0.0, 1.0 - a], [1.0, -a], torque)  # τ at each tick, from rest
         torque = torque + (state - torque) * (lag_s / ts) * (1.0 - a)
-    sim = simulate_deadzone(params, eps, torque, rec.sample_rate_hz, delay_samples=1 + delay_samples)
+    sim = simulate_deadzone(params, eps, torque, rec.sample_rate_hz, delay_samples=1 + int(delay_samples))
     lo, hi = float(frd.frequency_hz[0]), float(frd.frequency_hz[-1])
     g = estimate_frd(rec.torque_ref, sim.motor_velocity, rec.sample_rate_hz, band_hz=(lo, hi),
                      resolution_hz=frd.resolution_hz, quality=False)

@@ -41,7 +41,7 @@ from .compiled import per_sample
 from .consistency import InitialMotion, initial_motion
 from .twomass import TwoMassParameters
 
-__all__ = ["KalmanProblem", "Innovations", "innovations", "kalman_problem", "position_step_rad"]
+__all__ = ["KalmanProblem", "Innovations", "delayed_torque", "innovations", "kalman_problem", "position_step_rad"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,9 +70,10 @@ class KalmanProblem:
     torque_rms_nm: float
     """RMS of τ_ref [N·m]: the scale of the torque disturbance."""
     velocity_scale_rad_s: float
-    delay_samples: int = 0
+    delay_samples: float = 0
     """Whole samples between a torque reference and the current loop beyond the hold's own (a drive's
-    computation and transport delay)."""
+    computation and transport delay); negative, also a fraction: the encoders latched that long after the
+    torque (a log's alignment)."""
     start: InitialMotion = InitialMotion()
     """How the axis moves at sample 0: at rest for every experiment this tool runs; read off the first
     samples of a record cut from a longer one."""
@@ -105,7 +106,7 @@ def position_step_rad(position: NDArray[np.float64], measured: NDArray[np.bool_]
 
 def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.float64], sample_rate_hz: float, *,
                    load_position: NDArray[np.float64] | None = None, velocity_scale_rad_s: float = 2e-3,
-                   lost: NDArray[np.bool_] | None = None, delay_samples: int = 0,
+                   lost: NDArray[np.bool_] | None = None, delay_samples: float = 0,
                    motor_noise_rad: float = 0.0) -> KalmanProblem:
     """The predictor's view of a record (see :class:`KalmanProblem`); ``torque_ref`` [N·m], shape (N,), the
     reference as logged, acting ``delay_samples`` later; ``motor_noise_rad``: the motor position's error
@@ -120,21 +121,28 @@ def kalman_problem(torque_ref: NDArray[np.float64], motor_position: NDArray[np.f
     noise = np.array([max(s, 1e-9) / math.sqrt(12.0) for s in steps])
     noise[0] = max(noise[0], motor_noise_rad)
     tau = np.ascontiguousarray(torque_ref, dtype=np.float64)
-    d = int(delay_samples)
-    if not -tau.size < d < tau.size:
-        raise ValueError(f"delay of {delay_samples} samples on a record of {tau.size}")
-    return KalmanProblem(fs, _delayed(tau, d), y, None if load_position is None else np.ascontiguousarray(load_position, dtype=np.float64),
+    d = float(delay_samples)
+    if not (-tau.size < d < tau.size and (d <= 0 or d == int(d))):
+        raise ValueError(f"delay of {delay_samples} samples on a record of {tau.size} (whole samples, or a lead)")
+    return KalmanProblem(fs, delayed_torque(tau, d), y, None if load_position is None else np.ascontiguousarray(load_position, dtype=np.float64),
                          np.concatenate((np.tanh(speed / velocity_scale_rad_s), [0.0])), noise,
-                         np.ascontiguousarray(measured), _delayed(_lost_torque_variance(tau, ~measured), d),
+                         np.ascontiguousarray(measured), delayed_torque(_lost_torque_variance(tau, ~measured), d),
                          float(np.sqrt(np.mean(tau * tau))),
                          velocity_scale_rad_s, d, initial_motion(y, fs))
 
 
-def _delayed(x: NDArray[np.float64], d: int) -> NDArray[np.float64]:
-    """``x`` acting ``d`` samples later, 0 before the record (shape kept); ``d`` < 0: earlier (sensors latched
-    after the torque's sample), its last value held past the record."""
+def delayed_torque(x: NDArray[np.float64], d: float) -> NDArray[np.float64]:
+    """``x`` acting ``d`` samples later, 0 before the record (shape kept; ``d`` whole when positive); ``d`` < 0:
+    earlier (sensors latched after the torque's sample), interpolated between whole samples (a smooth
+    torque's hold a fraction of a sample earlier), its last value held past the record."""
     if d < 0:
-        return np.concatenate((x[-d:], np.full(-d, x[-1])))
+        n, w = int(math.floor(-d)), -d - math.floor(-d)
+
+        def early(m: int) -> NDArray[np.float64]:
+            return np.concatenate((x[m:], np.full(m, x[-1]))) if m else x
+
+        return early(n) if w == 0.0 else (1.0 - w) * early(n) + w * early(n + 1)
+    d = int(d)
     return np.concatenate((np.zeros(d), x[:x.size - d])) if d else x
 
 
