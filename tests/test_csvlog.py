@@ -178,6 +178,8 @@ def test_a_rounded_time_column_is_read_on_its_uniform_grid(tmp_path: Path, name:
     # (within the float64's own resolution at a Unix time, 0.24 µs)
     assert np.max(np.abs((rec.t - rec.t[0]) - (exact - exact[0]))) < 0.3e-6
     assert rec.torque_ref.tolist() == [float(k % 7) for k in range(t.size)]
+    if name == "unix time":  # the run's start, to the column's resolution
+        assert abs(rec.start_time.timestamp() - 1.764e9) < 1e-6
 
 
 def test_a_rounded_time_column_with_a_sample_missing_is_refused(tmp_path: Path) -> None:

@@ -25,8 +25,8 @@ spreadsheet's four decimals), every sample within half its rounding step of a
 uniform grid; and at least 50 Hz (a ``t`` in milliseconds is an error that says
 so). The sample rate is ``sample_rate_hz`` from its directive when given (it must
 agree with the data), else 1 / median interval (or the rounded column's grid). ``start_time`` is the
-directive's ISO-8601 time when given, else the file's modification time in
-UTC. ``Recording.metadata["source"]`` is the file name; the drive is unknown.
+directive's ISO-8601 time when given, else the time column's first value when it is a
+Unix time, else the file's modification time in UTC. ``Recording.metadata["source"]`` is the file name; the drive is unknown.
 
 :func:`write_csv` writes both directives and every float with ``repr``, so
 that :func:`read_csv` gives back the same samples, rate and start time bitwise.
@@ -56,6 +56,8 @@ UNIFORM_TOLERANCE = 1e-3
 ROUNDED_SHARE = 0.05
 #: Slowest sample rate read [Hz]: below it a time column is in other units than seconds.
 MIN_SAMPLE_RATE_HZ = 50.0
+#: A time column from this value on [s] is a Unix time (2001-09-09), the run's start when no directive says.
+UNIX_TIME_FROM_S = 1e9
 #: Longest line read (a row of six floats written with repr is under 150 characters).
 MAX_LINE_CHARS = 1 << 16
 
@@ -243,7 +245,9 @@ def _read(p: str, lines: _Lines, mtime: float) -> Recording:
                 f"({sample_rate_hz:.9g} Hz from the median interval)"
             )
         sample_rate_hz = given
-    start_time = datetime.fromtimestamp(mtime, tz=timezone.utc)
+    # a t column that counts Unix time (since 2001, before the file was written) says when the run started
+    unix = UNIX_TIME_FROM_S <= float(t[0]) <= mtime
+    start_time = datetime.fromtimestamp(float(t[0]) if unix else mtime, tz=timezone.utc)
     if "start_time" in directives:
         lineno, value = directives["start_time"]
         try:
