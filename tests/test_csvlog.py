@@ -75,6 +75,54 @@ def test_other_separators(tmp_path: Path, sep: str) -> None:
     assert rec.torque_ref.tolist() == [0.5, 0.5, 0.4, 0.3]
 
 
+@pytest.mark.parametrize("sep", [";", "\t"])
+def test_a_decimal_comma_reads_the_same_samples(tmp_path: Path, sep: str) -> None:
+    # a spreadsheet's export in a locale that writes 0,125: separator ';' (or tab), decimal comma
+    rec = make_recording(2000)
+    write_csv(tmp_path / "r.csv", rec)
+    lines = (tmp_path / "r.csv").read_text().splitlines(keepends=True)
+    text = "".join(line if line.startswith("#") else line.replace(",", sep).replace(".", ",") for line in lines)
+    back = read_csv(write(tmp_path, text, "comma.csv"))
+    for name in ("t", *SIGNAL_UNITS):
+        assert getattr(back, name).view(np.uint64).tolist() == getattr(rec, name).view(np.uint64).tolist(), name
+    # a thousands separator is not guessed at
+    assert_error(write(tmp_path, "t;torque_ref;motor_velocity\n0;0,5;0\n0,001;1.000,5;0,1\n"),
+                 "line 3, column 'torque_ref': not a number ('1.000,5')")
+
+
+def test_rows_a_logger_dropped_are_interpolated_and_marked_lost(tmp_path: Path) -> None:
+    rec = make_recording(1000, optional=False)
+    write_csv(tmp_path / "r.csv", rec)
+    lines = (tmp_path / "r.csv").read_text().splitlines(keepends=True)
+    header = next(i for i, line in enumerate(lines) if line.startswith("t,"))
+    dropped = {10, 500, 501, 502}  # sample indices: one row, then three in a row
+    text = "".join(line for i, line in enumerate(lines) if i - header - 1 not in dropped)
+    back = read_csv(write(tmp_path, text, "dropped.csv"))
+    assert len(back) == 1000 and back.sample_rate_hz == rec.sample_rate_hz
+    assert np.flatnonzero(back.lost_mask).tolist() == sorted(dropped)
+    kept = ~back.lost_mask
+    assert np.array_equal(back.torque_ref[kept], rec.torque_ref[kept])
+    assert np.allclose(back.t, rec.t, rtol=0.0, atol=1e-15)
+    # a lost sample lies on the line between its neighbours
+    assert back.torque_ref[10] == pytest.approx(0.5 * (rec.torque_ref[9] + rec.torque_ref[11]), rel=1e-12, abs=1e-300)
+    # and a record written with lost samples keeps them
+    write_csv(tmp_path / "again.csv", back)
+    assert np.array_equal(read_csv(tmp_path / "again.csv").lost_mask, back.lost_mask)
+
+
+def test_a_record_missing_too_much_is_refused(tmp_path: Path) -> None:
+    header = "t,torque_ref,motor_velocity\n"
+    rows = [f"{k / 1000!r},1,2\n" for k in range(1000)]
+    assert_error(write(tmp_path, header + "".join(rows[:300] + rows[401:])), "101 of 1,000 samples are missing",
+                 "101 in one piece before line 302", "100 ms in one piece")
+    # three gaps of 90 ms each: none too long, 21 % in all
+    rows = [f"{k / 1000!r},1,2\n" for k in range(1270)]
+    gone = {k for start in (100, 500, 900) for k in range(start, start + 90)}
+    assert_error(write(tmp_path, header + "".join(r for k, r in enumerate(rows) if k not in gone)),
+                 "270 of 1,270 samples are missing (21.3%")
+    assert_error(write(tmp_path, "# lost_samples: 3-x\n" + header + "".join(rows)), "line 1", "'3-x' is not an index")
+
+
 def test_utf8_bom_and_crlf(tmp_path: Path) -> None:
     path = tmp_path / "bom.csv"
     path.write_bytes(b"\xef\xbb\xbf" + GOOD.replace("\n", "\r\n").encode())

@@ -642,7 +642,8 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
     rec = result["recording"]
     rows = [
         ("source", str(result.get("source"))),
-        ("samples", f"{rec['samples']} at {rec['sample_rate_hz']:g} Hz ({rec['duration_s']:g} s)"),
+        ("samples", f"{rec['samples']} at {rec['sample_rate_hz']:g} Hz ({rec['duration_s']:g} s)"
+                    + (f", {rec['lost_samples']} lost and interpolated" if rec.get("lost_samples") else "")),
         ("signals", ", ".join(rec["signals"])),
         ("peak torque / speed", f"{rec['peak_torque_nm']:.4g} N·m / {rec['peak_motor_velocity_rad_s']:.4g} rad/s"),
         ("status", rec["status"]),

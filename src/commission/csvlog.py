@@ -5,6 +5,7 @@ Format::
     # drive-commission recording          (optional '#' comment lines, anywhere)
     # sample_rate_hz: 8000.0              (optional directive, before the header)
     # start_time: 2025-01-01T00:00:00+00:00   (optional directive, before the header)
+    # lost_samples: 17,40-43              (optional directive: samples a link lost, interpolated)
     t,torque_ref,motor_velocity,motor_position
     0.0,0.12,0.0,0.0
     0.000125,0.13,0.002,2.5e-07
@@ -14,22 +15,24 @@ Columns, by header name (a unit in brackets may follow, ``t [s]``; it must then
 be the SI unit below): ``t`` [s], ``torque_ref`` [N·m] and ``motor_velocity``
 [rad/s] are required; ``motor_position`` [rad], ``load_position`` [rad] and
 ``load_velocity`` [rad/s] are optional; any other column is an error. The
-separator is ``,`` (``;`` or tab when the header has no comma).
+separator is ``,`` (``;`` or tab when the header has no comma); with ``;`` or tab, numbers may have a
+decimal comma (``0,125``, a spreadsheet's export in many locales) when the first data row has one.
 
 The file is read line by line (a regular file; lines of at most 64 Ki characters, at most
 4.8 million data rows), so its size bounds neither the memory nor the time before an error.
 
-Sampling must be uniform: every interval within 1e-3 of the median interval,
-or, for a time column rounded coarser than that (a Unix time in float64, a
-spreadsheet's four decimals), every sample within half its rounding step of a
-uniform grid; and at least 50 Hz (a ``t`` in milliseconds is an error that says
+Sampling must be uniform: every interval within 1e-3 of the median interval (or of a whole
+multiple of it: a few rows a logger dropped, which are interpolated and marked lost as a streamed
+link's lost cycles are, up to 20 % of the record and 0.1 s in one piece), or, for a time column
+rounded coarser than that (a Unix time in float64, a spreadsheet's four decimals), every sample
+within half its rounding step of a uniform grid; and at least 50 Hz (a ``t`` in milliseconds is an error that says
 so). The sample rate is ``sample_rate_hz`` from its directive when given (it must
 agree with the data), else 1 / median interval (or the rounded column's grid). ``start_time`` is the
 directive's ISO-8601 time when given, else the time column's first value when it is a
 Unix time, else the file's modification time in UTC. ``Recording.metadata["source"]`` is the file name; the drive is unknown.
 
-:func:`write_csv` writes both directives and every float with ``repr``, so
-that :func:`read_csv` gives back the same samples, rate and start time bitwise.
+:func:`write_csv` writes the directives and every float with ``repr``, so
+that :func:`read_csv` gives back the same samples, rate, start time and lost samples bitwise.
 """
 
 from __future__ import annotations
@@ -45,7 +48,8 @@ from datetime import datetime, timezone
 import numpy as np
 
 from .exceptions import LogFormatError, RecordingError
-from .recording import MAX_SAMPLES, REQUIRED_SIGNALS, SIGNAL_UNITS, Recording
+from .recording import (LOST_SAMPLES_KEY, MAX_GAP_S, MAX_LOST_FRACTION, MAX_SAMPLES, REQUIRED_SIGNALS, SIGNAL_UNITS,
+                        Recording, decode_samples, encode_samples)
 
 __all__ = ["UNIFORM_TOLERANCE", "read_csv", "write_csv"]
 
@@ -64,12 +68,14 @@ MAX_LINE_CHARS = 1 << 16
 _UNITS = {"t": "s", **SIGNAL_UNITS}
 _UNIT_ALIASES = {"N·m": {"N·m", "Nm", "N*m", "N.m", "N m", "N⋅m"}}
 _HEADER_CELL = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(?:\[\s*([^\]]*?)\s*\])?\s*$")
-_DIRECTIVE = re.compile(r"^#\s*(sample_rate_hz|start_time)\s*[:=]\s*(.*?)\s*$")
+_DIRECTIVE = re.compile(r"^#\s*(sample_rate_hz|start_time|lost_samples)\s*[:=]\s*(.*?)\s*$")
 
 
-def _sample_period(t: np.ndarray, p: object, line_numbers: Sequence[int]) -> tuple[float, np.ndarray]:
-    """The sample period [s] of the increasing time column ``t``, shape (N,), and the sample times: its
-    median interval, every interval within ``UNIFORM_TOLERANCE`` of it, and ``t``; or, when ``t`` is
+def _sample_period(t: np.ndarray, p: object,
+                   line_numbers: Sequence[int]) -> tuple[float, np.ndarray, np.ndarray | None]:
+    """The sample period [s] of the increasing time column ``t``, shape (N,), the sample times, and each
+    row's sample index when rows are missing (else None): its median interval, every interval within
+    ``UNIFORM_TOLERANCE`` of it or of a whole multiple of it (rows a logger dropped), and ``t``; or, when ``t`` is
     rounded coarser than that (a Unix time in float64, a spreadsheet's decimals), the period of the
     uniform grid through its samples, fitted by least squares, every sample within half the rounding
     step of it, and that grid (the rounding is no jitter of the drive's clock to resample from).
@@ -83,14 +89,16 @@ def _sample_period(t: np.ndarray, p: object, line_numbers: Sequence[int]) -> tup
     # a rounded column changes its interval by whole rounding steps, often; one gap or glitch does not
     step = float(np.min(change)) if change.size >= max(ROUNDED_SHARE * dt.size, 10) else 0.0
     if step <= UNIFORM_TOLERANCE * dt_med:
-        off = np.abs(dt - dt_med) > UNIFORM_TOLERANCE * dt_med
+        periods = np.maximum(np.round(dt / dt_med), 1.0)
+        off = np.abs(dt - periods * dt_med) > UNIFORM_TOLERANCE * dt_med
         if off.any():
             k = int(np.argmax(off)) + 1
             raise LogFormatError(
                 f"{p}: line {line_numbers[k]}: non-uniform sampling (interval {dt[k - 1]:.9g} s, "
-                f"expected {dt_med:.9g} s within {UNIFORM_TOLERANCE:g} of it)"
+                f"expected {dt_med:.9g} s or a whole multiple of it, within {UNIFORM_TOLERANCE:g} of it)"
             )
-        return dt_med, t
+        slots = np.concatenate(([0], np.cumsum(periods.astype(np.int64)))) if np.any(periods > 1.0) else None
+        return dt_med, t, slots
     k = np.arange(t.size) - 0.5 * (t.size - 1)
     rel = t - float(np.mean(t))
     period = float(np.dot(k, rel) / np.dot(k, k))  # the grid by least squares: its ties round either way
@@ -101,7 +109,7 @@ def _sample_period(t: np.ndarray, p: object, line_numbers: Sequence[int]) -> tup
             f"{p}: line {line_numbers[i]}: non-uniform sampling (t rounded to {step:.3g} s: t={float(t[i])!r} s "
             f"lies off the uniform grid of {period:.9g} s by more than half of that)"
         )
-    return period, float(np.mean(t)) + k * period
+    return period, float(np.mean(t)) + k * period, None
 
 
 def _unit_ok(expected: str, given: str) -> bool:
@@ -187,11 +195,14 @@ def _read(p: str, lines: _Lines, mtime: float) -> Recording:
     values = [array("d") for _ in columns]
     line_numbers = array("q")
     reader = csv.reader(lines, delimiter=delimiter)
+    number = float
     try:
         for cells in reader:
             lineno = lines.lineno
             if not cells or (len(cells) == 1 and not cells[0].strip()) or cells[0].lstrip().startswith("#"):
                 continue
+            if not line_numbers and delimiter != "," and any("," in cell for cell in cells):
+                number = _decimal_comma  # a spreadsheet's export in a locale that writes 0,125
             if len(cells) != len(columns):
                 raise LogFormatError(f"{p}: line {lineno}: {len(cells)} cells, the header has {len(columns)} columns")
             if len(line_numbers) >= MAX_SAMPLES:
@@ -199,7 +210,7 @@ def _read(p: str, lines: _Lines, mtime: float) -> Recording:
                                      "(10 minutes at 8 kHz)")
             for name, cell, column in zip(columns, cells, values):
                 try:
-                    column.append(float(cell))
+                    column.append(number(cell))
                 except ValueError:
                     what = "empty cell" if not cell.strip() else f"not a number ({cell.strip()[:40]!r})"
                     raise LogFormatError(f"{p}: line {lineno}, column '{name}': {what}") from None
@@ -226,7 +237,7 @@ def _read(p: str, lines: _Lines, mtime: float) -> Recording:
         raise LogFormatError(
             f"{p}: line {line_numbers[k]}: time does not increase (t={float(t[k])!r} s after t={float(t[k - 1])!r} s)"
         )
-    dt_med, t = _sample_period(t, p, line_numbers)
+    dt_med, t, slots = _sample_period(t, p, line_numbers)
     sample_rate_hz = 1.0 / dt_med
     if sample_rate_hz < MIN_SAMPLE_RATE_HZ:
         raise LogFormatError(
@@ -258,16 +269,53 @@ def _read(p: str, lines: _Lines, mtime: float) -> Recording:
             raise LogFormatError(f"{p}: line {lineno}: start_time {value!r} has no time zone (add +00:00 for UTC)")
 
     signals = {name: data[name] for name in columns if name != "t"}
+    metadata = {"source": os.path.basename(p)}
+    lost = None
+    if slots is not None:
+        t, signals, lost = _with_missing_rows(p, slots, t, signals, sample_rate_hz, line_numbers)
+    if "lost_samples" in directives:
+        lineno, value = directives["lost_samples"]
+        try:
+            marked = decode_samples(value, t.size)
+        except RecordingError as err:
+            raise LogFormatError(f"{p}: line {lineno}: {err}") from None
+        lost = marked if lost is None else lost | marked
+    if lost is not None and lost.any():
+        metadata[LOST_SAMPLES_KEY] = encode_samples(lost)
     try:
         return Recording(
             t=t,
             sample_rate_hz=sample_rate_hz,
             start_time=start_time,
-            metadata={"source": os.path.basename(p)},
+            metadata=metadata,
             **signals,
         )
     except RecordingError as err:
         raise LogFormatError(f"{p}: {err}") from err
+
+
+def _with_missing_rows(p: str, slots: np.ndarray, t: np.ndarray, signals: dict[str, np.ndarray], sample_rate_hz: float,
+                       line_numbers: Sequence[int]) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
+    """The record on its whole sample grid, the rows a logger dropped interpolated and marked lost (as a
+    streamed link's lost cycles are: the identification leaves them out), and the mask of those, shape (M,).
+
+    :param slots: each row's sample index, shape (N,), increasing from 0.
+    :raises LogFormatError: more rows are missing than ``MAX_LOST_FRACTION`` of the record, or a stretch
+        longer than ``MAX_GAP_S`` (the record would be mostly guessed).
+    """
+    n = int(slots[-1]) + 1
+    lost = np.ones(n, dtype=bool)
+    lost[slots] = False
+    gaps = np.diff(slots) - 1
+    k = int(np.argmax(gaps))
+    if lost.mean() > MAX_LOST_FRACTION or gaps[k] / sample_rate_hz > MAX_GAP_S:
+        raise LogFormatError(
+            f"{p}: {int(lost.sum()):,} of {n:,} samples are missing ({lost.mean():.1%}; {gaps[k]:,} in one piece "
+            f"before line {line_numbers[k + 1]}): more than a record can lose and still be identified "
+            f"({MAX_LOST_FRACTION:.0%} of it, or {MAX_GAP_S * 1e3:g} ms in one piece)")
+    grid = np.arange(n, dtype=np.float64)
+    full = {name: np.interp(grid, slots, x) for name, x in signals.items()}
+    return np.interp(grid, slots, t), full, lost
 
 
 def _parse_header(path: str, lineno: int, cells: Sequence[str]) -> list[str]:
@@ -298,6 +346,12 @@ def _parse_header(path: str, lineno: int, cells: Sequence[str]) -> list[str]:
     return names
 
 
+def _decimal_comma(cell: str) -> float:
+    if "." in cell:
+        raise ValueError(cell)  # 1.000,5 (a thousands separator) or a mix of both: not read as a guess
+    return float(cell.replace(",", "."))
+
+
 def _looks_numeric(cell: str) -> bool:
     try:
         float(cell)
@@ -307,9 +361,10 @@ def _looks_numeric(cell: str) -> bool:
 
 
 def write_csv(path: str | os.PathLike[str], recording: Recording) -> None:
-    """Write ``recording`` as a CSV replay log (exact floats; directives for rate and start time).
+    """Write ``recording`` as a CSV replay log (exact floats; directives for rate, start time and the
+    samples a link lost).
 
-    Drive identity and metadata are not stored. :class:`RecordingError` when the recording
+    Drive identity and other metadata are not stored. :class:`RecordingError` when the recording
     is not uniformly sampled within :data:`UNIFORM_TOLERANCE` (the CSV format requires it).
     """
     dt = np.diff(recording.t)
@@ -328,5 +383,7 @@ def write_csv(path: str | os.PathLike[str], recording: Recording) -> None:
         f.write(f"# drive-commission recording; units: {units}\n")
         f.write(f"# sample_rate_hz: {recording.sample_rate_hz!r}\n")
         f.write(f"# start_time: {recording.start_time.isoformat()}\n")
+        if recording.lost_mask.any():
+            f.write(f"# lost_samples: {encode_samples(recording.lost_mask)}\n")
         f.write(",".join(names) + "\n")
         f.writelines(",".join(map(repr, row)) + "\n" for row in zip(*columns))

@@ -39,6 +39,10 @@ MAX_SAMPLES = 4_800_000
 
 #: Relative tolerance on sample spacing for a record to count as uniformly sampled.
 UNIFORM_RTOL = 1e-6
+#: A record is refused when more of its samples than this were lost (it is then mostly guessed) ...
+MAX_LOST_FRACTION = 0.2
+#: ... or when this long a stretch of it was lost in one piece [s].
+MAX_GAP_S = 0.1
 #: Metadata key of the samples the link lost: their values in the arrays are interpolated (positions,
 #: velocities) or the intended reference (torque), and a time-domain fit should leave them out.
 #: The value lists sample indices and inclusive ranges, ``"17,40-43"`` (see :func:`encode_samples`).

@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...exceptions import ConfigError, DriveError, DriveFault, DriveNotFound, DriveTimeout
-from ...recording import LOST_SAMPLES_KEY, DriveInfo, Recording, encode_samples
+from ...recording import LOST_SAMPLES_KEY, MAX_GAP_S, MAX_LOST_FRACTION, DriveInfo, Recording, encode_samples
 from ..base import Drive, ProgressCallback
 from ..cia402 import Mode, State, decode_statusword
 from ..description import (
@@ -104,10 +104,8 @@ POLL_S = 0.02
 STALL_S = 2.0
 #: seconds of bus traffic listened to before planning the streamed cycle (other nodes' load)
 LISTEN_S = 0.2
-#: a streamed run fails when more of its cycles than this were lost (the record is then mostly guessed)
-MAX_LOST_FRACTION = 0.2
-#: ... or when the link was silent this long in one piece [s]
-MAX_GAP_S = 0.1
+#: A streamed run fails when more of its cycles were lost than recording.MAX_LOST_FRACTION, or the link was
+#: silent longer than recording.MAX_GAP_S in one piece (the record is then mostly guessed) ...
 #: ... or when late setpoints paused the excitation for more than this fraction of its length: the host then
 #: answered fewer than half of the SYNCs in time, and the played chirp is a slower one (a narrower band).
 #: Pauses as such cost no accuracy while the record says what was applied (bench_streamed.py measures it).
