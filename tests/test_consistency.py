@@ -28,7 +28,7 @@ FS = 8000.0
 def _run(duration_s: float, load: bool = False) -> Recording:
     r = Plant(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.40, torque_noise_nm=1e-4, seed=5),
               FS).run_torque(chirp(ExcitationConfig(duration_s=duration_s)).samples)
-    extra = {"load_position": r.load_position} if load else {}
+    extra = {"load_position": r.load_position, "load_velocity": r.load_velocity} if load else {}
     return Recording.uniform(FS, r.torque_ref, r.motor_velocity, motor_position=r.motor_position, **extra)
 
 
@@ -70,14 +70,66 @@ def test_a_record_without_jumps_is_left_as_it_is(run: Recording) -> None:
     assert got is run and notes == []
 
 
-def test_a_glitch_leaves_the_position_out_and_says_where(run: Recording) -> None:
+def test_a_glitch_is_interpolated_marked_lost_and_said_where(run: Recording) -> None:
     x = run.motor_position.copy()
     x[30_000:30_003] += 1.234  # three samples off by a value no wrap has, then back
+    got, notes = unwrap_positions(run.replace(motor_position=x))
+    assert np.flatnonzero(got.lost_mask).tolist() == [30_000, 30_001, 30_002]
+    # on the line between the good neighbours: within the motion of 4 samples of the true position
+    assert np.max(np.abs(got.motor_position - run.motor_position)) < 4 * np.max(np.abs(np.diff(run.motor_position)))
+    assert np.array_equal(got.motor_velocity, run.motor_velocity)
+    jump = x[30_000] - x[29_999]
+    assert notes == [f"motor_position glitches at 3 samples (first at t = 3.75 s, by {jump:.3g} rad, and back): "
+                     "interpolated there and left out of the time-domain fit"]
+
+
+def test_an_encoder_glitch_replays_to_the_plant(tmp_path) -> None:
+    # one sample of the encoder misread by 0.05 rad, and the drive's velocity its difference (a spike up
+    # and down): identified as 136 s of fitting to J_m -93 % (flagged) when the glitch was a reset
+    rec = _run(3.0)
+    x = rec.motor_position.copy()
+    x[12_000] += 0.05
+    write_csv(tmp_path / "glitch.csv", rec.replace(motor_position=x,
+                                                   motor_velocity=np.diff(x, prepend=0.0) * FS))
+    assert main(["--replay", str(tmp_path / "glitch.csv"), "--out", str(tmp_path / "o"), "--no-tune"]) == 0
+    doc = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert any(n.startswith("motor_position glitches at 1 sample (first at t = 1.5 s") for n in doc["notes"])
+    assert any(n.startswith("motor_velocity disagrees with motor_position's step at 2 samples") for n in doc["notes"])
+    assert doc["fit"]["approximate"] is False
+    assert doc["backlash"]["epsilon_deg"] == pytest.approx(0.40, abs=0.01)
+    for p in ("J_m", "J_l", "K"):
+        assert doc["two_mass"][p] == pytest.approx(getattr(REFERENCE_PLANT, p), rel=0.02), p
+
+
+def test_a_position_that_jumps_and_stays_is_left_out_and_said_where(run: Recording) -> None:
+    x = run.motor_position.copy()
+    x[30_000:] += 1.234  # reset by a value no wrap has
     got, notes = unwrap_positions(run.replace(motor_position=x))
     assert got.motor_position is None and np.array_equal(got.motor_velocity, run.motor_velocity)
     jump = x[30_000] - x[29_999]
     assert len(notes) == 1 and f"motor_position jumps by {jump:.3g} rad at sample 30000 (t = 3.75 s)" in notes[0]
-    assert "left out" in notes[0]
+    assert "does not come back (1 jump, no wrap of one period: a reset" in notes[0] and "left out" in notes[0]
+
+
+@pytest.mark.parametrize("kind", ["difference of counts", "filtered by the drive", "velocity only"])
+def test_a_velocity_glitch_is_interpolated_and_marked_lost(run: Recording, kind: str) -> None:
+    # a velocity that is its position's step but for one sample: a corrupted value; with a drive's filtered
+    # velocity the same glitch stands out from the filter's lag, and without a position from its neighbours
+    v = run.motor_velocity.copy()
+    if kind == "filtered by the drive":
+        from scipy.signal import lfilter
+        a = math.exp(-2 * math.pi * 500.0 / FS)
+        v = lfilter([1 - a], [1, -a], v)
+    clean = run.replace(motor_velocity=v.copy(), **({"motor_position": None} if kind == "velocity only" else {}))
+    v[40_000] += 50.0
+    got, notes = reconcile(clean.replace(motor_velocity=v))
+    assert np.flatnonzero(got.lost_mask).tolist() == [40_000]
+    assert got.motor_velocity[40_000] == pytest.approx(0.5 * (v[39_999] + v[40_001]))
+    start = ("motor_velocity glitches at 1 sample (first at t = 5 s, a spike of 50" if kind == "velocity only" else
+             "motor_velocity disagrees with motor_position's step at 1 sample (first at t = 5 s, by 50")
+    assert len(notes) == 1 and notes[0].startswith(start), notes
+    # and the record without it is left as it is
+    assert reconcile(clean) == (clean, [])
 
 
 def test_a_position_in_other_units_than_its_velocity_is_one_clear_error(run: Recording) -> None:
@@ -103,8 +155,22 @@ def test_positions_that_count_the_other_way_are_reversed(run: Recording) -> None
                                        load_velocity=None))
     assert np.array_equal(got.motor_position, run.motor_position)
     assert np.array_equal(got.load_position, run.load_position)
-    assert notes == ["motor_position counts the other way than the velocity: its sign is reversed",
-                     "load_position counts the other way than the velocity: its sign is reversed"]
+    assert notes == ["motor_position counts the other way than the velocity's motion: its sign is reversed",
+                     "load_position counts the other way than the motor's motion: its sign is reversed"]
+
+
+def test_a_load_encoder_mounted_the_other_way_round_is_reversed(run: Recording) -> None:
+    # its position agrees with its own velocity, both against the motor's: both are reversed
+    got, notes = reconcile(run.replace(load_position=-run.load_position, load_velocity=-run.load_velocity))
+    assert np.array_equal(got.load_position, run.load_position)
+    assert np.array_equal(got.load_velocity, run.load_velocity)
+    assert notes == ["load_position counts the other way than the motor's motion: its sign is reversed "
+                     "(and load_velocity's)"]
+
+
+def test_a_load_encoder_behind_a_gear_is_an_error_with_its_velocity_too(run: Recording) -> None:
+    with pytest.raises(IdentificationError, match=r"load_position moves 0\.1× as far as the motor's.*gear ratio"):
+        reconcile(run.replace(load_position=0.1 * run.load_position, load_velocity=0.1 * run.load_velocity))
 
 
 def test_a_torque_of_the_other_sign_is_reversed_and_said_so(run: Recording) -> None:

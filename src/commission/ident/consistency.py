@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..exceptions import IdentificationError
-from ..recording import Recording
+from ..recording import LOST_SAMPLES_KEY, Recording, encode_samples
 
 __all__ = ["InitialMotion", "initial_motion", "rebuilt_position_noise_rad", "reconcile", "unwrap_positions"]
 
@@ -64,6 +64,13 @@ REVERSED_POWER = -0.02
 LATTICE_SHARE = 0.99
 LATTICE_TOLERANCE = 0.01
 LATTICE_DIVISORS = 4
+#: A position that jumps and jumps back within this many samples has glitched there (an encoder's
+#: misread, a corrupted frame), not wrapped or been reset.
+GLITCH_SAMPLES = 16
+#: A velocity sample disagrees with its position's step when it is off by more than this many times the
+#: 99th percentile of the disagreement (a drive's filter lags a little everywhere; a glitch is one sample)
+#: ... and by more than two encoder steps per sample.
+GLITCH_FACTOR = 10.0
 
 
 def reconcile(rec: Recording) -> tuple[Recording, list[str]]:
@@ -77,16 +84,12 @@ def reconcile(rec: Recording) -> tuple[Recording, list[str]]:
     rec = _judged(rec, "motor_position", _step_ratio(rec.motor_position, _motion(rec.motor_velocity, rec.t)), notes)
     rec, wraps = unwrap_positions(rec)
     notes += wraps
+    rec = _velocity_glitches(rec, notes)
+    if rec.load_position is not None and rec.load_velocity is not None:
+        rec = _judged(rec, "load_position", _step_ratio(rec.load_position, _motion(rec.load_velocity, rec.t)), notes,
+                      against="load_velocity's")
     if rec.load_position is not None:
-        if rec.load_velocity is not None:
-            ratio = _step_ratio(rec.load_position, _motion(rec.load_velocity, rec.t))
-        else:
-            # above the resonance the load hardly moves while the motor does: compared by the whole
-            # displacement (the slow bias's), which the load follows but for the twist
-            motor = (rec.motor_position if rec.motor_position is not None
-                     else np.concatenate(([0.0], np.cumsum(_motion(rec.motor_velocity, rec.t)))))
-            ratio = _displacement_ratio(rec.load_position, motor)
-        rec = _judged(rec, "load_position", ratio, notes)
+        rec = _load_on_motor_scale(rec, notes)
     if rec.motor_position is None and not _on_a_lattice(rec.motor_velocity, rec.lost_mask):
         v = rec.motor_velocity
         notes.append("the motor velocity is no difference of encoder counts (it lies on no lattice of whole "
@@ -155,7 +158,23 @@ def _displacement_ratio(x: NDArray[np.float64], reference: NDArray[np.float64]) 
     return float(np.dot(a, b) / bb) if bb > 0.0 else None
 
 
-def _judged(rec: Recording, name: str, ratio: float | None, notes: list[str]) -> Recording:
+def _load_on_motor_scale(rec: Recording, notes: list[str]) -> Recording:
+    """``rec`` with its load encoder judged against the motor's: above the resonance the load hardly moves
+    while the motor does, so the two are compared by their whole displacement (the slow bias's), which the
+    load follows but for the twist. A load encoder mounted the other way round counts the other way with
+    its own velocity too, so both are reversed."""
+    motor = (rec.motor_position if rec.motor_position is not None
+             else np.concatenate(([0.0], np.cumsum(_motion(rec.motor_velocity, rec.t)))))
+    judged = _judged(rec, "load_position", _displacement_ratio(rec.load_position, motor), notes,
+                     against="the motor's")
+    if judged.load_position is None or rec.load_velocity is None or judged.load_position is rec.load_position:
+        return judged
+    notes[-1] += " (and load_velocity's)"
+    return judged.replace(load_velocity=-rec.load_velocity)
+
+
+def _judged(rec: Recording, name: str, ratio: float | None, notes: list[str],
+            against: str = "the velocity's") -> Recording:
     """``rec`` with position ``name`` left out when it does not move (``ratio`` of its motion to what it
     should be near 0), reversed when it counts the other way (near −1); an error at any other ratio
     outside ``SCALE_RANGE``."""
@@ -167,9 +186,8 @@ def _judged(rec: Recording, name: str, ratio: float | None, notes: list[str]) ->
                      "of the identification")
         return rec.replace(**{name: None})
     if -hi <= ratio <= -lo:
-        notes.append(f"{name} counts the other way than the velocity: its sign is reversed")
+        notes.append(f"{name} counts the other way than {against} motion: its sign is reversed")
         return rec.replace(**{name: -getattr(rec, name)})
-    against = "the motor's" if name == "load_position" else "the velocity's"
     raise IdentificationError(
         f"{name} moves {ratio:.3g}× as far as {against} motion says: its units are not rad on the motor's "
         "scale (degrees, revolutions, counts, a gear ratio; or a velocity in rpm?), and the record cannot "
@@ -177,60 +195,153 @@ def _judged(rec: Recording, name: str, ratio: float | None, notes: list[str]) ->
 
 
 def unwrap_positions(rec: Recording) -> tuple[Recording, list[str]]:
-    """``rec`` with its wrapped positions unwrapped, and glitched ones left out; the notes say which.
+    """``rec`` with its wrapped positions unwrapped, its glitches interpolated (and marked lost), and a
+    position that jumps and stays left out; the notes say which.
 
     The bound on a sample's motion comes from the motor velocity (and the load velocity, when the
-    record has one, for the load position), over the longest sample period of the record."""
+    record has one, for the load position; ``_top_speed``), over the longest sample period of the record."""
     notes: list[str] = []
     dt = np.diff(rec.t)
-    v_max = float(np.max(np.abs(rec.motor_velocity)))
+    v_max = _top_speed(rec.motor_velocity)
     if rec.load_velocity is not None:
-        v_max = max(v_max, float(np.max(np.abs(rec.load_velocity))))
+        v_max = max(v_max, _top_speed(rec.load_velocity))
     changes: dict[str, NDArray[np.float64] | None] = {}
+    glitched = np.zeros(len(rec), dtype=np.bool_)
     for name, v in (("motor_position", rec.motor_velocity), ("load_position", rec.load_velocity)):
         x = getattr(rec, name)
         if x is None:
             continue
         # the step from sample k to k+1 the velocity says (the drive's convention: v[k+1] = Δx/Ts)
         motion = v[1:] * dt if v is not None else np.zeros_like(dt)
-        fixed, note = _unwrapped(x, motion, v_max * float(np.max(dt)), name, rec.t)
+        fixed, note, bad = _unwrapped(x, motion, v_max * float(np.max(dt)), name, rec.t)
         if note:
             changes[name] = fixed
             notes.append(note)
-    return (rec.replace(**changes) if changes else rec), notes
+            glitched |= bad
+    return (_with_lost(rec.replace(**changes), glitched) if changes else rec), notes
+
+
+def _top_speed(v: NDArray[np.float64]) -> float:
+    """The largest speed of a velocity [rad/s] that a glitch does not set: twice its 99.9th percentile
+    (a drive's velocity is its encoder's difference, and spikes with it)."""
+    return 2.0 * float(np.percentile(np.abs(v), 99.9))
+
+
+def _with_lost(rec: Recording, lost: NDArray[np.bool_]) -> Recording:
+    """``rec`` with the samples ``lost`` (shape (N,)) added to those it marks lost."""
+    if not lost.any():
+        return rec
+    return rec.replace(metadata={**rec.metadata, LOST_SAMPLES_KEY: encode_samples(rec.lost_mask | lost)})
+
+
+def _interpolated(x: NDArray[np.float64], bad: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """``x`` (shape (N,)) on the line between its good neighbours at the samples ``bad``."""
+    k = np.arange(x.size)
+    return np.where(bad, np.interp(k, k[~bad], x[~bad]), x)
+
+
+def _velocity_glitches(rec: Recording, notes: list[str]) -> Recording:
+    """``rec`` with the velocity samples that disagree with their position's step by far more than any
+    other does (a glitch; ``GLITCH_FACTOR``), or without a position that spike, interpolated and marked
+    lost, and a note on where."""
+    dt = np.diff(rec.t)
+    bad = np.zeros(len(rec), dtype=np.bool_)
+    changes = {}
+    for pos, vel in (("motor_position", "motor_velocity"), ("load_position", "load_velocity")):
+        x, v = getattr(rec, pos), getattr(rec, vel)
+        if x is None or v is None:
+            continue
+        off = np.abs(v[1:] - np.diff(x) / dt)
+        steps = np.abs(np.diff(x))
+        step = float(np.min(steps[steps > 0], initial=0.0))
+        limit = max(GLITCH_FACTOR * float(np.percentile(off, 99)), 2.0 * step / float(np.max(dt)))
+        glitch = np.concatenate(([False], off > limit))
+        if glitch.any() and glitch.mean() < 0.01:
+            k = int(np.argmax(glitch))
+            notes.append(f"{vel} disagrees with {pos}'s step at {int(glitch.sum())} sample"
+                         f"{'s' if glitch.sum() > 1 else ''} (first at t = {rec.t[k]:.4g} s, by {off[k - 1]:.3g} "
+                         f"rad/s): glitches, interpolated there and left out of the time-domain fit")
+            changes[vel] = _interpolated(v, glitch)
+            bad |= glitch
+    if rec.motor_position is None:
+        v = rec.motor_velocity
+        # without a position, a glitch is a spike: away from both neighbours in one direction (an encoder's
+        # misread count makes one up and one down), by more than nearly any speed of the record (an impact
+        # at a turning point is a spike too, but a small one)
+        dv = np.diff(v)
+        off = np.where(dv[:-1] * dv[1:] < 0.0, np.minimum(np.abs(dv[:-1]), np.abs(dv[1:])), 0.0)
+        limit = max(GLITCH_FACTOR * float(np.percentile(off, 99)), 0.5 * _top_speed(v))
+        glitch = np.concatenate(([False], off > limit, [False]))
+        if glitch.any() and glitch.mean() < 0.01:
+            k = int(np.argmax(glitch))
+            notes.append(f"motor_velocity glitches at {int(glitch.sum())} sample{'s' if glitch.sum() > 1 else ''} "
+                         f"(first at t = {rec.t[k]:.4g} s, a spike of {off[k - 1]:.3g} rad/s): interpolated there "
+                         "and left out of the time-domain fit")
+            changes["motor_velocity"] = _interpolated(v, glitch)
+            bad |= glitch
+    return _with_lost(rec.replace(**changes), bad) if changes else rec
 
 
 def _unwrapped(x: NDArray[np.float64], motion: NDArray[np.float64], bound_rad: float, name: str,
-               t: NDArray[np.float64]) -> tuple[NDArray[np.float64] | None, str]:
-    """(the position unwrapped, or None when its jumps are no period's multiples; the note), or (x, "")
-    without jumps.
+               t: NDArray[np.float64]) -> tuple[NDArray[np.float64] | None, str, NDArray[np.bool_]]:
+    """(the position unwrapped, or with its glitches interpolated, or None when its jumps are neither;
+    the note; the glitched samples), or (x, "", none) without jumps.
 
     :param x: the position [rad], shape (N,).
     :param motion: each step's motion by the velocity [rad], shape (N − 1,) (zeros when unknown).
     :param bound_rad: the largest motion a sample allows [rad].
     """
     step = np.diff(x)
+    none = np.zeros(x.size, dtype=np.bool_)
     jumps = np.flatnonzero(np.abs(step) > max(JUMP_FACTOR * bound_rad, JUMP_FLOOR_RAD))
     if jumps.size == 0:
-        return x, ""
+        return x, "", none
     excess = step[jumps] - motion[jumps]
     unit = float(np.min(np.abs(excess)))  # a wrap jumps by one period at least
-    turns = np.round(excess / unit)
-    period = float(np.median(np.abs(excess) / np.abs(turns)))
-    if abs(period - 2.0 * math.pi) <= PERIOD_RTOL * 2.0 * math.pi:
-        period = 2.0 * math.pi  # a single-turn position in rad: its period exactly
-    # a wrapped position stays within one period; a spike and back jumps by equal steps too, but not that
-    within = float(np.ptp(x)) <= (1.0 + PERIOD_RTOL) * period + bound_rad
-    if within and np.all(np.abs(excess - turns * period) <= PERIOD_RTOL * period + bound_rad):
-        correction = np.zeros_like(x)
-        correction[jumps + 1] = -turns * period
-        return x + np.cumsum(correction), (
-            f"{name} wraps {jumps.size} times at a period of {period:.6g} rad (a single-turn or counter "
-            "position): unwrapped")
+    if unit > bound_rad:  # (a glitch the velocity repeats has no excess over the motion)
+        turns = np.round(excess / unit)
+        period = float(np.median(np.abs(excess) / np.abs(turns)))
+        if abs(period - 2.0 * math.pi) <= PERIOD_RTOL * 2.0 * math.pi:
+            period = 2.0 * math.pi  # a single-turn position in rad: its period exactly
+        # a wrapped position stays within one period; a spike and back jumps by equal steps too, but not that
+        within = float(np.ptp(x)) <= (1.0 + PERIOD_RTOL) * period + bound_rad
+        if within and np.all(np.abs(excess - turns * period) <= PERIOD_RTOL * period + bound_rad):
+            correction = np.zeros_like(x)
+            correction[jumps + 1] = -turns * period
+            return x + np.cumsum(correction), (
+                f"{name} wraps {jumps.size} times at a period of {period:.6g} rad (a single-turn or counter "
+                "position): unwrapped"), none
     k = int(jumps[0])
+    glitched = _spikes(x, jumps, bound_rad)
+    if glitched is not None:
+        return _interpolated(x, glitched), (
+            f"{name} glitches at {int(glitched.sum())} sample{'s' if glitched.sum() > 1 else ''} (first at "
+            f"t = {t[k + 1]:.4g} s, by {step[k]:.3g} rad, and back): interpolated there and left out of the "
+            "time-domain fit"), glitched
     return None, (f"{name} jumps by {step[k]:.3g} rad at sample {k + 1} (t = {t[k + 1]:.4g} s) where the "
-                  f"velocity moves it by at most {bound_rad:.2g} rad, and its {jumps.size} jumps are no "
-                  "wrap of one period (a glitch): left out of the identification")
+                  f"velocity moves it by at most {bound_rad:.2g} rad, and does not come back "
+                  f"({jumps.size} jump{'s' if jumps.size > 1 else ''}, no wrap of one period: a reset or a "
+                  "slipping encoder): left out of the identification"), none
+
+
+def _spikes(x: NDArray[np.float64], jumps: NDArray[np.intp], bound_rad: float) -> NDArray[np.bool_] | None:
+    """The samples of a position ``x`` (shape (N,)) that jumped away and came back within ``GLITCH_SAMPLES``:
+    back within two samples' motion (``bound_rad`` each) of the line its last two good samples set (not
+    of the velocity's motion: a drive's velocity is the difference of the glitched counts), shape (N,);
+    None when a jump does not come back."""
+    bad = np.zeros(x.size, dtype=np.bool_)
+    for k in jumps:
+        if bad[k]:
+            continue  # the way back of a glitch already found
+        end = min(x.size - 1, int(k) + GLITCH_SAMPLES)
+        slope = x[k] - x[k - 1] if k > 0 else 0.0
+        line = x[k] + slope * np.arange(1, end - k + 1)
+        back = np.flatnonzero(np.abs(x[k + 1:end + 1] - line) <= 2.0 * bound_rad + 1e-9 * abs(x[k]))
+        back = back[back > 0]
+        if back.size == 0:
+            return None
+        bad[k + 1:k + 1 + int(back[0])] = True
+    return bad
 
 
 #: A record starts in motion when its speed over its first ``_START_WINDOW_S`` is above this share of its

@@ -216,8 +216,8 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
     run = _Run(rec, opt, band, resolution, [], bool(opt.use_load_encoder and rec.load_position is not None),
                rec.lost_mask)
     if run.lost.any():
-        run.notes.append(f"{int(run.lost.sum())} samples the link lost are interpolated in the record and left "
-                         "out of the time-domain fit")
+        run.notes.append(f"in all, {int(run.lost.sum())} samples lost or glitched are interpolated in the record "
+                         "and left out of the time-domain fit")
     st.start("start", 0.0)
     _start_stage(run)
     st.done("start", parameters=run.base.as_dict(), how=run.start.how if run.start else "load encoder",  # type: ignore[union-attr]
