@@ -89,12 +89,18 @@ def test_an_encoder_glitch_replays_to_the_plant(tmp_path) -> None:
     rec = _run(3.0)
     x = rec.motor_position.copy()
     x[12_000] += 0.05
-    write_csv(tmp_path / "glitch.csv", rec.replace(motor_position=x,
-                                                   motor_velocity=np.diff(x, prepend=0.0) * FS))
-    assert main(["--replay", str(tmp_path / "glitch.csv"), "--out", str(tmp_path / "o"), "--no-tune"]) == 0
+    _replays_to_the_plant(tmp_path, rec.replace(motor_position=x, motor_velocity=np.diff(x, prepend=0.0) * FS),
+                          "motor_position glitches at 1 sample (first at t = 1.5 s",
+                          "motor_velocity disagrees with motor_position's step at 2 samples")
+
+
+def _replays_to_the_plant(tmp_path, rec: Recording, *notes: str) -> None:
+    """``rec`` written as a CSV and replayed: within the tolerances, not flagged, with notes that start so."""
+    write_csv(tmp_path / "axis.csv", rec)
+    assert main(["--replay", str(tmp_path / "axis.csv"), "--out", str(tmp_path / "o"), "--no-tune"]) == 0
     doc = json.loads((tmp_path / "o" / "result.json").read_text())
-    assert any(n.startswith("motor_position glitches at 1 sample (first at t = 1.5 s") for n in doc["notes"])
-    assert any(n.startswith("motor_velocity disagrees with motor_position's step at 2 samples") for n in doc["notes"])
+    for start in notes:
+        assert any(n.startswith(start) for n in doc["notes"]), start
     assert doc["fit"]["approximate"] is False
     assert doc["backlash"]["epsilon_deg"] == pytest.approx(0.40, abs=0.01)
     for p in ("J_m", "J_l", "K"):
@@ -168,6 +174,14 @@ def test_a_load_encoder_mounted_the_other_way_round_is_reversed(run: Recording) 
                      "(and load_velocity's)"]
 
 
+def test_a_load_position_that_does_not_follow_the_motor_is_left_out(run: Recording) -> None:
+    # another axis's encoder in the load column: no scale to judge, so no units error either
+    other = np.cumsum(np.random.default_rng(1).standard_normal(len(run))) * 1e-3
+    got, notes = reconcile(run.replace(load_position=other, load_velocity=None))
+    assert got.load_position is None and len(notes) == 1
+    assert notes[0].startswith("load_position does not follow the motor (correlation of their displacements 0.")
+
+
 def test_a_load_encoder_behind_a_gear_is_an_error_with_its_velocity_too(run: Recording) -> None:
     with pytest.raises(IdentificationError, match=r"load_position moves 0\.1× as far as the motor's.*gear ratio"):
         reconcile(run.replace(load_position=0.1 * run.load_position, load_velocity=0.1 * run.load_velocity))
@@ -186,16 +200,9 @@ def test_a_wrapped_reversed_csv_replays_to_the_plant(tmp_path) -> None:
     # 3 s of the chirp turn the motor 2 times
     rec = _run(3.0)
     assert _crossings(rec.motor_position, 2 * math.pi) >= 2
-    write_csv(tmp_path / "axis.csv", rec.replace(motor_position=_wrapped(rec.motor_position, 2 * math.pi),
-                                                 torque_ref=-rec.torque_ref))
-    assert main(["--replay", str(tmp_path / "axis.csv"), "--out", str(tmp_path / "o"), "--no-tune"]) == 0
-    doc = json.loads((tmp_path / "o" / "result.json").read_text())
-    assert any(n.startswith("motor_position wraps") for n in doc["notes"])
-    assert any(n.startswith("the motor turns against torque_ref") for n in doc["notes"])
-    assert doc["fit"]["approximate"] is False
-    assert doc["backlash"]["epsilon_deg"] == pytest.approx(0.40, abs=0.01)
-    for p in ("J_m", "J_l", "K"):
-        assert doc["two_mass"][p] == pytest.approx(getattr(REFERENCE_PLANT, p), rel=0.02), p
+    _replays_to_the_plant(tmp_path, rec.replace(motor_position=_wrapped(rec.motor_position, 2 * math.pi),
+                                                torque_ref=-rec.torque_ref),
+                          "motor_position wraps", "the motor turns against torque_ref")
 
 
 def test_units_that_disagree_are_a_one_line_error_of_the_command(tmp_path, capsys) -> None:

@@ -64,6 +64,9 @@ REVERSED_POWER = -0.02
 LATTICE_SHARE = 0.99
 LATTICE_TOLERANCE = 0.01
 LATTICE_DIVISORS = 4
+#: A load position whose displacement correlates less than this with the motor's does not follow it (another
+#: axis's, or a motor record that is not the load's): it is left out rather than judged for its scale.
+LOAD_FOLLOWS = 0.9
 #: A position that jumps and jumps back within this many samples has glitched there (an encoder's
 #: misread, a corrupted frame), not wrapped or been reset.
 GLITCH_SAMPLES = 16
@@ -165,6 +168,12 @@ def _load_on_motor_scale(rec: Recording, notes: list[str]) -> Recording:
     its own velocity too, so both are reversed."""
     motor = (rec.motor_position if rec.motor_position is not None
              else np.concatenate(([0.0], np.cumsum(_motion(rec.motor_velocity, rec.t)))))
+    a, b = rec.load_position - rec.load_position[0], motor - motor[0]
+    follows = abs(float(np.dot(a, b))) / max(float(np.sqrt(np.dot(a, a) * np.dot(b, b))), 1e-300)
+    if follows < LOAD_FOLLOWS:
+        notes.append(f"load_position does not follow the motor (correlation of their displacements {follows:.2f}): "
+                     "left out of the identification")
+        return rec.replace(load_position=None)
     judged = _judged(rec, "load_position", _displacement_ratio(rec.load_position, motor), notes,
                      against="the motor's")
     if judged.load_position is None or rec.load_velocity is None or judged.load_position is rec.load_position:
