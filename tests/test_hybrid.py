@@ -144,6 +144,41 @@ def test_the_encoders_start_reads_the_plant_off_both_encoders_with_any_number_of
         assert getattr(one.parameters, name) == pytest.approx(getattr(true, name), rel=0.01), name
 
 
+@pytest.mark.parametrize("offset_rad", [0.0, math.radians(0.05), -math.radians(0.3), 5.0])
+def test_the_load_encoders_own_origin_is_found_from_both_encoders(offset_rad: float) -> None:
+    # a load encoder's zero is its own: the twist the model reads is x_m − x_l from a common origin, the
+    # gap's middle; the simulator's encoders share that origin, a real axis's do not
+    from commission.ident.residual import prepare_residual
+    from commission.ident.start import load_encoder_start, load_origin_rad
+
+    true, eps = PLANTS["reference"]
+    rec = _record(true, eps, load=True, duration_s=3.0)
+    problem = prepare_residual(rec.torque_ref, FS, motor_position=rec.motor_position, cutoff_hz=300.0,
+                               load_position=rec.load_position + offset_rad)
+    shift = load_origin_rad(problem, load_encoder_start(problem, math.radians(16.0)))
+    if offset_rad == 0.0:
+        assert shift == 0.0  # a centred gap is left as it is
+    else:
+        assert math.degrees(shift + offset_rad) == pytest.approx(0.0, abs=1e-4)
+
+
+def test_a_load_encoder_with_its_own_zero_replays_to_the_plant(tmp_path) -> None:
+    # 286° between the encoders' zeros: the start found no plant and the fit ran for minutes
+    from commission.cli import main
+    from commission.csvlog import write_csv
+
+    true, eps = PLANTS["reference"]
+    rec = _record(true, eps, load=True, duration_s=3.0)
+    write_csv(tmp_path / "dual.csv", rec.replace(load_position=rec.load_position + 5.0))
+    assert main(["--replay", str(tmp_path / "dual.csv"), "--out", str(tmp_path / "o"), "--no-tune"]) == 0
+    doc = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert any(n.startswith("the load encoder's origin lies 286.479° from the motor's") for n in doc["notes"])
+    assert doc["fit"]["approximate"] is False
+    assert doc["backlash"]["epsilon_deg"] == pytest.approx(eps, abs=0.01)
+    for name in ("J_m", "J_l", "K"):
+        assert doc["two_mass"][name] == pytest.approx(getattr(true, name), rel=0.02), name
+
+
 def test_paper_method_runs_end_to_end() -> None:
     true, eps = PLANTS["reference"]
     res = identify(_record(true, eps), IdentificationOptions(method=Method.PAPER, max_iterations=2))

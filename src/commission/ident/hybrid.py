@@ -261,7 +261,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
 def _start_stage(run: _Run) -> None:
     """The frequency-domain start (or the encoders'), the residual's low-pass, and the notes on them."""
     from .scan import EPSILON_EXTEND_MAX_DEG
-    from .start import frequency_start, load_encoder_start, residual_cutoff
+    from .start import frequency_start, load_encoder_start, load_origin_rad, residual_cutoff
 
     opt, fs = run.opt, run.fs
     run.problem = run.prepared(min(opt.residual_cutoff_hz, 0.4 * fs))
@@ -283,6 +283,14 @@ def _start_stage(run: _Run) -> None:
     # FRD's resonance is pulled low by the gap on backlash-rich records, and the low-pass chosen from a low
     # resonance would cut the real one off
     run.encoders = encoders(first) if run.use_load else None
+    if run.use_load:
+        shift = load_origin_rad(first, run.encoders)
+        if shift:
+            run.notes.append(f"the load encoder's origin lies {math.degrees(-shift):.6g}° from the motor's (with "
+                             "the gap's middle as the common origin): its position is shifted by that")
+            run.rec = run.rec.replace(load_position=run.rec.load_position + shift)
+            first = run.problem = run.prepared(first.cutoff_hz)
+            run.encoders = encoders(first)
     if run.start is None and run.encoders is None:
         raise IdentificationError("neither the frequency response nor the encoders give a two-mass plant")
     run.base = run.encoders.parameters if run.encoders is not None else run.start.parameters

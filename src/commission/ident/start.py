@@ -337,6 +337,11 @@ class EncoderStart:
     """RMS of the motor equation's residual at the best ε [N·m]."""
 
 
+#: The load encoder's origin is searched for when a shift of the twist by this much [°] either way fits the
+#: encoders' equations better than none.
+_ORIGIN_PROBE_DEG = 0.002
+
+
 def _deadzone(z: NDArray[np.float64], eps: float) -> NDArray[np.float64]:
     return np.where(z > eps, z - eps, np.where(z < -eps, z + eps, 0.0))
 
@@ -357,6 +362,68 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads
     """
     if problem.load_position is None:
         return None
+    solve = _encoder_equations(problem)
+    grid = np.concatenate(([0.0], np.geomspace(math.radians(0.005), max(epsilon_top_rad, math.radians(0.01)), 40)))
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        costs = list(pool.map(solve, grid))
+        i = int(np.argmin([cst for cst, _ in costs]))
+        if not math.isfinite(costs[i][0]):
+            return None
+        lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+        fine = np.linspace(lo, hi, 11)
+        refined = list(pool.map(solve, fine))
+    j = int(np.argmin([cst for cst, _ in refined]))
+    (cost, th), eps = (refined[j], fine[j]) if refined[j][0] <= costs[i][0] else (costs[i], grid[i])
+    J_m, B_m, J_l, B_l, K, D, F_m, F_l = (float(v) for v in th)
+    S = max(abs(B_m) + abs(B_l), 1e-9)
+    p = TwoMassParameters(J_m=J_m, J_l=J_l, B_m=max(B_m, 1e-3 * S), B_l=max(B_l, 1e-3 * S), K=K,
+                          D=max(D, 1e-6 * K))
+    return EncoderStart(p, float(eps), max(F_m, 0.0), max(F_l, 0.0), cost)
+
+
+def load_origin_rad(problem: ResidualProblem, start: EncoderStart | None) -> float:
+    """How far the load encoder's origin lies from the motor's [rad]: the shift of the measured twist that
+    centres the gap (0 when centred). A load encoder's zero is its own; the twist the model reads is
+    x_m − x_l measured from a common origin, the gap's middle. The encoders' equations of motion
+    (:func:`load_encoder_start`) fit far better at the right shift (0.01° off on the reference plant: 10×
+    the residual), so the shift and ε are fitted together on them (Nelder–Mead from the middle of the
+    twist's range) when the centred gap is not already the best within ±``_ORIGIN_PROBE_DEG``, or the
+    twist never crosses 0; the shift is kept when it halves the residual of the centred gap (at the
+    start's ε and at the one found), else 0 (with no ``start``, whenever the fit has positive inertias
+    and stiffness: the centred gap gave none)."""
+    from scipy.optimize import minimize
+
+    solve = _encoder_equations(problem)
+    h = math.radians(_ORIGIN_PROBE_DEG)
+    c = problem.spline
+    z = np.concatenate((c[:, 3], [c[-1].sum()])) - problem.load_position
+    middle, half = 0.5 * float(np.max(z) + np.min(z)), 0.5 * float(np.ptp(z))
+    # (far from the right shift the residual is flat: a twist that never crosses 0 is searched anyway)
+    if (start is not None and abs(middle) <= half
+            and min(solve(start.epsilon_rad, d)[0] for d in (-h, h)) >= start.cost_nm):
+        return 0.0
+    # (ε within the twist's range: a start that read the offset as a gap has ε beyond it, and no stiffness)
+    eps0 = max(min(start.epsilon_rad, 0.9 * half) if start is not None else 0.5 * half, h)
+    before = start.cost_nm if start is not None else math.inf
+
+    def cost(v: NDArray[np.float64]) -> float:
+        c = solve(abs(float(v[1])), float(v[0]))[0]
+        return c if math.isfinite(c) else 1e300
+
+    first = cost(np.array([middle, eps0]))
+    res = minimize(cost, np.array([middle, eps0]), method="Nelder-Mead",
+                   options={"initial_simplex": np.array([[middle, eps0], [middle + 0.1 * half + h, eps0],
+                                                         [middle, 0.5 * eps0]]),
+                            "xatol": 1e-7, "fatol": 1e-6 * min(before, first), "maxfev": 400})
+    # against the centred gap at the ε found (the start's ε is a grid's)
+    centred = min(before, cost(np.array([0.0, float(res.x[1])])))
+    return float(res.x[0]) if float(res.fun) < 0.5 * centred else 0.0
+
+
+def _encoder_equations(problem: ResidualProblem) -> Any:
+    """``solve(ε, shift=0)``: the encoders' equations of motion at gap ε [rad] with the measured twist
+    shifted by ``shift`` [rad] (:func:`load_encoder_start`): (RMS residual [N·m], inf when no inertia or
+    stiffness is positive; the parameters (J_m, B_m, J_l, B_l, K, D, F_m, F_l))."""
     fs = problem.sample_rate_hz
     c = problem.spline
     x = np.concatenate((c[:, 3], [c[-1].sum()]))
@@ -374,8 +441,8 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads
     zero = np.zeros(n)
     b = np.concatenate((tq[inner], zero[inner]))
 
-    def solve(eps: float) -> tuple[float, NDArray[np.float64]]:
-        y = _deadzone(z, eps)
+    def solve(eps: float, shift: float = 0.0) -> tuple[float, NDArray[np.float64]]:
+        y = _deadzone(z - shift if shift else z, eps)
         Y = lp(np.ascontiguousarray((y[:-2] + 4.0 * y[1:-1] + y[2:]) / 6.0))
         Yd = lp(np.ascontiguousarray((y[2:] - y[:-2]) * (0.5 * fs)))
         A = np.vstack((np.stack((am, vm, zero, zero, Y, Yd, sm, zero), axis=1)[inner],
@@ -387,22 +454,7 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads
         ok = th[0] > 0 and th[2] > 0 and th[4] > 0
         return (float(np.sqrt(np.mean(r * r))) if ok else math.inf), th
 
-    grid = np.concatenate(([0.0], np.geomspace(math.radians(0.005), max(epsilon_top_rad, math.radians(0.01)), 40)))
-    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        costs = list(pool.map(solve, grid))
-        i = int(np.argmin([cst for cst, _ in costs]))
-        if not math.isfinite(costs[i][0]):
-            return None
-        lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
-        fine = np.linspace(lo, hi, 11)
-        refined = list(pool.map(solve, fine))
-    j = int(np.argmin([cst for cst, _ in refined]))
-    (cost, th), eps = (refined[j], fine[j]) if refined[j][0] <= costs[i][0] else (costs[i], grid[i])
-    J_m, B_m, J_l, B_l, K, D, F_m, F_l = (float(v) for v in th)
-    S = max(abs(B_m) + abs(B_l), 1e-9)
-    p = TwoMassParameters(J_m=J_m, J_l=J_l, B_m=max(B_m, 1e-3 * S), B_l=max(B_l, 1e-3 * S), K=K,
-                          D=max(D, 1e-6 * K))
-    return EncoderStart(p, float(eps), max(F_m, 0.0), max(F_l, 0.0), cost)
+    return solve
 
 
 def measured_band_hz(frd: FRD, level: float = 0.5) -> tuple[float, float]:
