@@ -2,12 +2,15 @@
 what ``commission --replay X.csv --no-tune`` gives on each, and how long it takes.
 
 The source is the reference plant (ε 0.4°, 1e-4 N·m torque noise) under the default 10 s chirp at 8 kHz;
-each case changes 3 s of it (or all 10 s) the way a real log can differ (two latch the encoders
-half a sample and a sample after their torque; two give the velocity alone, as a signal sampled at the
-sample instants rather than a difference of counts); then the 3 s record with its time column written as
-loggers and spreadsheets write it. Each line: the exit code, the wall
-time of the command in a fresh process (numba's kernels already cached), ε and its interval, the errors of
-J_m, J_l and K against the plant, whether the result is flagged, and the first note or error.
+each case changes 3 s of it (or all 10 s) the way a real log can differ: two latch the encoders half a
+sample and a sample after their torque; two give the velocity alone, as a signal sampled at the sample
+instants rather than a difference of counts; three have a load encoder that counts the other way, from
+its own zero (5 rad from the motor's) or behind a gear; three a one-sample glitch of the encoder (with
+and without the position) or of the velocity. Then the 3 s record with its time column written as
+loggers and spreadsheets write it, with a decimal comma, and with rows a logger dropped. Each line: the
+exit code, the wall time of the command in a fresh process (numba's kernels already cached), ε and its
+interval, the errors of J_m, J_l and K against the plant, whether the result is flagged, and the first
+note or error.
 
 Then the margins of the same checks on the default family (seed 22, every member): how far each member
 is from being changed by them.
@@ -46,6 +49,7 @@ def cases() -> dict[str, Recording]:
               FS).run_torque(chirp(ExcitationConfig()).samples)
     full = Recording.uniform(FS, r.torque_ref, r.motor_velocity, motor_position=r.motor_position)
     head = full.head(N3)
+    loaded = full.replace(load_position=r.load_position, load_velocity=r.load_velocity)
 
     def cut(start_s: float) -> Recording:
         a = int(start_s * FS)
@@ -69,7 +73,24 @@ def cases() -> dict[str, Recording]:
         "encoders half a sample late (10 s)": half_sample_late(),
         "velocity only, sampled (10 s)": sampled_velocity(),
         "velocity only, filtered 500 Hz (10 s)": Recording.uniform(FS, full.torque_ref, filtered),
+        "load encoder counting backwards (10 s)": loaded.replace(load_position=-loaded.load_position,
+                                                                   load_velocity=-loaded.load_velocity),
+        "encoder glitch, 1 sample (10 s)": glitched(full),
+        "encoder glitch, velocity only (10 s)": glitched(full).replace(motor_position=None),
+        "velocity glitch, 1 sample (10 s)": full.replace(motor_velocity=full.motor_velocity
+                                                         + 50.0 * (np.arange(len(full)) == 40_000)),
+        "load encoder with its own zero (10 s)": loaded.replace(load_position=loaded.load_position + 5.0),
+        "load encoder behind a 1:10 gear": loaded.head(N3).replace(load_position=0.1 * loaded.load_position[:N3],
+                                                                   load_velocity=0.1 * loaded.load_velocity[:N3]),
     }
+
+
+def glitched(rec: Recording) -> Recording:
+    """``rec`` with its encoder misread by 0.05 rad at one sample (t = 5 s), and the drive's velocity the
+    difference of that position (a spike up and one down)."""
+    x = rec.motor_position.copy()
+    x[40_000] += 0.05
+    return rec.replace(motor_position=x, motor_velocity=np.diff(x, prepend=x[0]) * FS)
 
 
 def half_sample_late() -> Recording:
@@ -148,7 +169,8 @@ def family_margins() -> list[str]:
             f"  correlation of torque and velocity: lowest {min(power):+.3f} (reversed below {c.REVERSED_POWER:+g})",
             f"  motor position / velocity step ratio: {min(motor):.6f}–{max(motor):.6f} (acted on outside "
             f"{c.SCALE_RANGE[0]:g}–{c.SCALE_RANGE[1]:g})",
-            f"  load / motor displacement ratio (load velocity ignored): {min(load):.4f}–{max(load):.4f}",
+            f"  load / motor displacement ratio: {min(load):.4f}–{max(load):.4f} (acted on outside "
+            f"{c.SCALE_RANGE[0]:g}–{c.SCALE_RANGE[1]:g})",
             f"  speed over the first ms / top speed: largest {max(moving):.2e} (moving above {c._START_MOVING:g})",
             f"  velocity-only members whose velocity is no difference of counts: {off_lattice} of {velocity_only}",
             f"  shaft torque at the truth, samples on its rarer side: fewest {min(sides)} (not crossing below {_CROSSING_SAMPLES})"]
@@ -160,13 +182,21 @@ TIME_COLUMNS = {
     "t rounded to 0.1 ms": lambda k: np.round(k / FS, 4),
     "t in milliseconds": lambda k: k * 1e3 / FS,
 }
+#: Other ways a logger writes the 3 s record: (separator, decimal mark, sample indices it dropped).
+LAYOUTS = {
+    "';' and a decimal comma": (";", ",", ()),
+    "12 rows a logger dropped": (",", ".", tuple(range(1000, 24000, 2000))),
+}
 
 
-def write_with_time(path: Path, rec: Recording, t: np.ndarray) -> None:
+def write_with_time(path: Path, rec: Recording, t: np.ndarray, sep: str = ",", decimal: str = ".",
+                    dropped: tuple[int, ...] = ()) -> None:
     """``rec`` as a CSV whose time column is ``t`` [s] (no directives: the rate comes from t)."""
     cols = [t, rec.torque_ref, rec.motor_velocity, rec.motor_position]
-    path.write_text("t,torque_ref,motor_velocity,motor_position\n"
-                    + "".join(",".join(map(repr, map(float, r))) + "\n" for r in zip(*cols)))
+    gone = set(dropped)
+    rows = (r for k, r in enumerate(zip(*cols)) if k not in gone)
+    path.write_text(sep.join(("t", "torque_ref", "motor_velocity", "motor_position")) + "\n"
+                    + "".join(sep.join(repr(float(v)).replace(".", decimal) for v in r) + "\n" for r in rows))
 
 
 def main() -> int:
@@ -182,6 +212,11 @@ def main() -> int:
         for i, (name, time_of) in enumerate(TIME_COLUMNS.items()):
             path, out = Path(tmp) / f"time{i}.csv", Path(tmp) / f"tout{i}"
             write_with_time(path, head, time_of(np.arange(len(head))))
+            code, seconds, err = replay(path, out)
+            print(row(name, code, seconds, err, out), flush=True)
+        for i, (name, (sep, decimal, dropped)) in enumerate(LAYOUTS.items()):
+            path, out = Path(tmp) / f"layout{i}.csv", Path(tmp) / f"lout{i}"
+            write_with_time(path, head, np.arange(len(head)) / FS, sep, decimal, dropped)
             code, seconds, err = replay(path, out)
             print(row(name, code, seconds, err, out), flush=True)
     for line in family_margins():
