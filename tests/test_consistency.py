@@ -107,6 +107,21 @@ def _replays_to_the_plant(tmp_path, rec: Recording, *notes: str) -> None:
         assert doc["two_mass"][p] == pytest.approx(getattr(REFERENCE_PLANT, p), rel=0.02), p
 
 
+def test_samples_a_logger_lost_are_no_glitch(run: Recording) -> None:
+    # rows a logger dropped come back interpolated and marked lost: the velocity after each disagrees with
+    # the interpolated step, which is no glitch (12 rows of a CSV once gave 12 such notes' samples more)
+    from commission.recording import LOST_SAMPLES_KEY, encode_samples
+
+    lost = np.zeros(len(run), dtype=bool)
+    lost[1000:80_000:7_000] = True
+    k = np.arange(len(run))
+    filled = {name: np.interp(k, k[~lost], getattr(run, name)[~lost])
+              for name in ("motor_position", "motor_velocity", "load_position", "load_velocity")}
+    rec = run.replace(**filled, metadata={LOST_SAMPLES_KEY: encode_samples(lost)})
+    got, notes = reconcile(rec)
+    assert notes == [] and np.array_equal(got.lost_mask, lost)
+
+
 def test_a_position_that_jumps_and_stays_is_left_out_and_said_where(run: Recording) -> None:
     x = run.motor_position.copy()
     x[30_000:] += 1.234  # reset by a value no wrap has

@@ -85,9 +85,10 @@ def reconcile(rec: Recording) -> tuple[Recording, list[str]]:
     """
     notes: list[str] = []
     rec = _judged(rec, "motor_position", _step_ratio(rec.motor_position, _motion(rec.motor_velocity, rec.t)), notes)
+    interpolated = rec.lost_mask  # by the link or the log, before any glitch is
     rec, wraps = unwrap_positions(rec)
     notes += wraps
-    rec = _velocity_glitches(rec, notes)
+    rec = _velocity_glitches(rec, notes, interpolated)
     if rec.load_position is not None and rec.load_velocity is not None:
         rec = _judged(rec, "load_position", _step_ratio(rec.load_position, _motion(rec.load_velocity, rec.t)), notes,
                       against="load_velocity's")
@@ -249,12 +250,14 @@ def _interpolated(x: NDArray[np.float64], bad: NDArray[np.bool_]) -> NDArray[np.
     return np.where(bad, np.interp(k, k[~bad], x[~bad]), x)
 
 
-def _velocity_glitches(rec: Recording, notes: list[str]) -> Recording:
+def _velocity_glitches(rec: Recording, notes: list[str], interpolated: NDArray[np.bool_]) -> Recording:
     """``rec`` with the velocity samples that disagree with their position's step by far more than any
     other does (a glitch; ``GLITCH_FACTOR``), or without a position that spike, interpolated and marked
-    lost, and a note on where."""
+    lost, and a note on where. ``interpolated`` (shape (N,)): the samples a link or a logger lost, and the
+    record interpolated: no evidence of a glitch there, nor at the sample after (its step is from one)."""
     dt = np.diff(rec.t)
     bad = np.zeros(len(rec), dtype=np.bool_)
+    known = ~(interpolated | np.concatenate(([False], interpolated[:-1])))
     changes = {}
     for pos, vel in (("motor_position", "motor_velocity"), ("load_position", "load_velocity")):
         x, v = getattr(rec, pos), getattr(rec, vel)
@@ -264,7 +267,7 @@ def _velocity_glitches(rec: Recording, notes: list[str]) -> Recording:
         steps = np.abs(np.diff(x))
         step = float(np.min(steps[steps > 0], initial=0.0))
         limit = max(GLITCH_FACTOR * float(np.percentile(off, 99)), 2.0 * step / float(np.max(dt)))
-        glitch = np.concatenate(([False], off > limit))
+        glitch = np.concatenate(([False], off > limit)) & known
         if glitch.any() and glitch.mean() < 0.01:
             k = int(np.argmax(glitch))
             notes.append(f"{vel} disagrees with {pos}'s step at {int(glitch.sum())} sample"
@@ -280,7 +283,7 @@ def _velocity_glitches(rec: Recording, notes: list[str]) -> Recording:
         dv = np.diff(v)
         off = np.where(dv[:-1] * dv[1:] < 0.0, np.minimum(np.abs(dv[:-1]), np.abs(dv[1:])), 0.0)
         limit = max(GLITCH_FACTOR * float(np.percentile(off, 99)), 0.5 * _top_speed(v))
-        glitch = np.concatenate(([False], off > limit, [False]))
+        glitch = np.concatenate(([False], off > limit, [False])) & known
         if glitch.any() and glitch.mean() < 0.01:
             k = int(np.argmax(glitch))
             notes.append(f"motor_velocity glitches at {int(glitch.sum())} sample{'s' if glitch.sum() > 1 else ''} "
