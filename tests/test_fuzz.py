@@ -375,7 +375,10 @@ def build_corpus(root: Path) -> tuple[list[Case], Path, Path]:
     csv_case("a column in the wrong unit", table(rows, header.replace("t,", "t [ms],", 1)))
     csv_case("10 000 columns", table(rows[:3], ",".join(f"c{i}" for i in range(10_000))))
     csv_case("time going back", table([rows[1], rows[0], *rows[2:]]))
-    csv_case("non-uniform sampling", table([*rows[:50], *rows[51:]]))
+    t50, period = float(rows[50].split(",")[0]), float(rows[1].split(",")[0]) - float(row0[0])
+    csv_case("non-uniform sampling", table([*rows[:50], ",".join([repr(t50 + period / 3), *rows[50].split(",")[1:]]),
+                                            *rows[51:]]))
+    csv_case("a row a logger dropped (read: interpolated, marked lost)", table([*rows[:50], *rows[51:]]), {0})
     csv_case("rate directive text", table(rows, pre=head.replace("sample_rate_hz: 8000.0", "sample_rate_hz: fast")))
     csv_case("rate directive wrong", table(rows, pre=head.replace("sample_rate_hz: 8000.0", "sample_rate_hz: 4000")))
     csv_case("rate directive infinite", table(rows, pre=head.replace("sample_rate_hz: 8000.0", "sample_rate_hz: inf")))
