@@ -197,6 +197,18 @@ def test_a_load_position_that_does_not_follow_the_motor_is_left_out(run: Recordi
     assert notes[0].startswith("load_position does not follow the motor (correlation of their displacements 0.")
 
 
+def test_a_load_velocity_alone_is_summed_to_its_position(run: Recording) -> None:
+    # a dual-loop drive's log may hold the load's velocity but not its position
+    got, notes = reconcile(run.replace(load_position=None))
+    assert notes == ["load position rebuilt from load_velocity (x[k] = x[k−1] + Ts·v[k])"]
+    assert np.max(np.abs(got.load_position - run.load_position)) < 1e-9
+    # a filtered one is no difference of counts: summed, it would lead by half a sample
+    from scipy.signal import lfilter
+    a = math.exp(-2 * math.pi * 500.0 / FS)
+    got, notes = reconcile(run.replace(load_position=None, load_velocity=lfilter([1 - a], [1, -a], run.load_velocity)))
+    assert got.load_position is None and len(notes) == 1 and notes[0].endswith("the load is not used")
+
+
 def test_a_load_encoder_behind_a_gear_is_an_error_with_its_velocity_too(run: Recording) -> None:
     with pytest.raises(IdentificationError, match=r"load_position moves 0\.1× as far as the motor's.*gear ratio"):
         reconcile(run.replace(load_position=0.1 * run.load_position, load_velocity=0.1 * run.load_velocity))
@@ -284,7 +296,7 @@ def sampled() -> tuple[Recording, np.ndarray]:
 def test_a_velocity_that_is_a_difference_of_counts_is_left_as_it_is(run: Recording) -> None:
     from commission.ident.consistency import rebuilt_position_noise_rad
 
-    rec = run.replace(motor_position=None, load_position=None)
+    rec = run.replace(motor_position=None, load_position=None, load_velocity=None)
     got, notes = reconcile(rec)
     assert got is rec and notes == []
     assert rebuilt_position_noise_rad(rec) == 0.0

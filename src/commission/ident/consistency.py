@@ -89,6 +89,8 @@ def reconcile(rec: Recording) -> tuple[Recording, list[str]]:
     rec, wraps = unwrap_positions(rec)
     notes += wraps
     rec = _velocity_glitches(rec, notes, interpolated)
+    if rec.load_position is None and rec.load_velocity is not None:
+        rec = _load_from_velocity(rec, notes)
     if rec.load_position is not None and rec.load_velocity is not None:
         rec = _judged(rec, "load_position", _step_ratio(rec.load_position, _motion(rec.load_velocity, rec.t)), notes,
                       against="load_velocity's")
@@ -160,6 +162,20 @@ def _displacement_ratio(x: NDArray[np.float64], reference: NDArray[np.float64]) 
     a, b = x - x[0], reference - reference[0]
     bb = float(np.dot(b, b))
     return float(np.dot(a, b) / bb) if bb > 0.0 else None
+
+
+def _load_from_velocity(rec: Recording, notes: list[str]) -> Recording:
+    """``rec`` with the load position summed from its load velocity when it has no load position (the
+    drive's convention, x[k] = x[k−1] + Ts·v[k]), from the motor's first position (the identification
+    fits the shift between the two encoders' zeros: ``start.load_origin_rad``); a load velocity that is
+    no difference of counts (a filter's, an observer's) is left unused, with a note."""
+    if not _on_a_lattice(rec.load_velocity, rec.lost_mask):
+        notes.append("load_velocity is no difference of encoder counts and the record has no load_position: "
+                     "the load is not used")
+        return rec
+    x0 = float(rec.motor_position[0]) if rec.motor_position is not None else 0.0
+    notes.append("load position rebuilt from load_velocity (x[k] = x[k−1] + Ts·v[k])")
+    return rec.replace(load_position=x0 + np.concatenate(([0.0], np.cumsum(_motion(rec.load_velocity, rec.t)))))
 
 
 def _load_on_motor_scale(rec: Recording, notes: list[str]) -> Recording:
