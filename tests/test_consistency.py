@@ -107,6 +107,16 @@ def _replays_to_the_plant(tmp_path, rec: Recording, *notes: str) -> None:
         assert doc["two_mass"][p] == pytest.approx(getattr(REFERENCE_PLANT, p), rel=0.02), p
 
 
+def test_a_load_encoders_glitch_is_interpolated_and_marked_lost(run: Recording) -> None:
+    xl = run.load_position.copy()
+    xl[40_000] += 0.05  # the load encoder misread once, its velocity the difference
+    got, notes = reconcile(run.replace(load_position=xl, load_velocity=np.diff(xl, prepend=xl[0]) * FS))
+    assert np.flatnonzero(got.lost_mask).tolist() == [40_000, 40_001]
+    assert np.max(np.abs(got.load_position - run.load_position)) < 2 * np.max(np.abs(np.diff(run.load_position)))
+    assert [n.split(" (")[0] for n in notes] == ["load_position glitches at 1 sample",
+                                                 "load_velocity disagrees with load_position's step at 2 samples"]
+
+
 def test_samples_a_logger_lost_are_no_glitch(run: Recording) -> None:
     # rows a logger dropped come back interpolated and marked lost: the velocity after each disagrees with
     # the interpolated step, which is no glitch (12 rows of a CSV once gave 12 such notes' samples more)
