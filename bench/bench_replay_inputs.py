@@ -4,7 +4,7 @@ what ``commission --replay X.csv --no-tune`` gives on each, and how long it take
 The source is the reference plant (ε 0.4°, 1e-4 N·m torque noise) under the default 10 s chirp at 8 kHz;
 each case changes 3 s of it (or all 10 s) the way a real log can differ: two latch the encoders half a
 sample and a sample after their torque; two give the velocity alone, as a signal sampled at the sample
-instants rather than a difference of counts; three have a load encoder that counts the other way, from
+instants rather than a difference of counts; one is in encoder counts; three have a load encoder that counts the other way, from
 its own zero (5 rad from the motor's) or behind a gear; three a one-sample glitch of the encoder (with
 and without the position) or of the velocity. Then the 3 s record with its time column written as
 loggers and spreadsheets write it, with a decimal comma, and with rows a logger dropped. Each line: the
@@ -41,6 +41,7 @@ from sim_drive.sampled import sampled_motor_velocity
 
 FS = 8000.0
 N3 = int(3 * FS)
+COUNTS_PER_RAD = 2**24 / (2 * math.pi)  # the simulator's 24-bit encoder
 
 
 def cases() -> dict[str, Recording]:
@@ -66,6 +67,8 @@ def cases() -> dict[str, Recording]:
         "torque sign reversed": head.replace(torque_ref=-head.torque_ref),
         "position in degrees": head.replace(motor_position=np.degrees(head.motor_position)),
         "velocity in rpm": head.replace(motor_velocity=head.motor_velocity * 60 / (2 * math.pi)),
+        "position and velocity in counts": head.replace(motor_position=np.round(head.motor_position * COUNTS_PER_RAD),
+                                                        motor_velocity=head.motor_velocity * COUNTS_PER_RAD),
         "cut at 3.5 s (moving, one reversal)": cut(3.5),
         "cut at 1 s (moving, never reverses)": cut(1.0),
         "encoders a sample late (10 s)": Recording.uniform(FS, full.torque_ref[:-1], full.motor_velocity[1:],

@@ -174,6 +174,18 @@ def test_a_position_in_other_units_than_its_velocity_is_one_clear_error(run: Rec
         reconcile(run.replace(load_position=0.1 * run.load_position, load_velocity=None))
 
 
+@pytest.mark.parametrize("velocity_only", [False, True])
+def test_a_record_in_encoder_counts_is_one_clear_error(run: Recording, velocity_only: bool) -> None:
+    # position and velocity both in counts agree with each other: identified, J and K were 1e-10 off after
+    # 108-128 s of fitting (flagged, with no word on units)
+    cpr = 2**24 / (2 * math.pi)  # the simulator's 24-bit encoder
+    rec = run.replace(motor_position=None if velocity_only else np.round(run.motor_position * cpr),
+                      motor_velocity=run.motor_velocity * cpr, load_position=None, load_velocity=None)
+    what = "motor_velocity is whole encoder counts per sample" if velocity_only else "motor_position holds whole"
+    with pytest.raises(IdentificationError, match=what):
+        reconcile(rec)
+
+
 def test_a_position_that_does_not_move_is_left_out(run: Recording) -> None:
     # a position column exported though no encoder fed it: identified from the velocity instead
     got, notes = reconcile(run.replace(motor_position=np.zeros(len(run))))

@@ -12,7 +12,9 @@ the velocity, or the motor side alone), with a note that says where it jumped.
 Scale and direction: the median ratio of a position's steps to the motion the velocity says (over the
 samples where the axis moves well) is 1 when both are in rad and rad/s and count the same way. About
 0: the position was not recorded (left out); about −1: it counts the other way (reversed); anything else
-is a unit error no one can undo from the record (an error that names the ratio). A passive machine
+is a unit error no one can undo from the record (an error that names the ratio). A position in whole
+encoder counts agrees with a velocity in counts/s; it steps by 1, which no encoder does in rad, and is an
+error that says so. A passive machine
 absorbs the work the torque does on it: mean(τ·v) > 0. A record where it is clearly negative has its
 torque's sign reversed against the encoder: identified with the torque reversed, and said so.
 
@@ -84,6 +86,7 @@ def reconcile(rec: Recording) -> tuple[Recording, list[str]]:
         on the motor's scale), which the record cannot say how to undo.
     """
     notes: list[str] = []
+    _not_counts(rec)
     rec = _judged(rec, "motor_position", _step_ratio(rec.motor_position, _motion(rec.motor_velocity, rec.t)), notes)
     interpolated = rec.lost_mask  # by the link or the log, before any glitch is
     rec, wraps = unwrap_positions(rec)
@@ -110,6 +113,26 @@ def reconcile(rec: Recording) -> tuple[Recording, list[str]]:
                      "check the drive's direction settings before closing a loop on it")
         rec = rec.replace(torque_ref=-rec.torque_ref)
     return rec, notes
+
+
+def _not_counts(rec: Recording) -> None:
+    """An error when the motor's position, or without one its velocity, is in encoder counts: whole numbers
+    that step by 1 (no encoder's step is 1 rad). With both in counts the two agree, and the record would
+    be identified in counts: J and K off by the square of the counts per rad, after minutes of fitting."""
+    x = rec.motor_position
+    if x is not None:
+        steps = np.abs(np.diff(x))
+        if np.array_equal(x, np.round(x)) and steps.any() and float(np.min(steps[steps > 0])) == 1.0:
+            raise IdentificationError(
+                "motor_position holds whole encoder counts (it steps by 1), not rad: convert the positions "
+                "(rad = counts × 2π / counts per turn) and the velocities (rad/s) before replaying")
+        return
+    d = np.abs(_motion(rec.motor_velocity, rec.t))
+    d = d[d > 0]
+    if d.size >= 20 and np.all(np.abs(d - np.round(d)) < 1e-6) and abs(float(d.min()) - 1.0) < 1e-6:
+        raise IdentificationError(
+            "motor_velocity is whole encoder counts per sample (counts/s), not rad/s: convert it "
+            "(rad/s = counts/s × 2π / counts per turn) before replaying")
 
 
 def _motion(v: NDArray[np.float64], t: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -281,7 +304,7 @@ def _velocity_glitches(rec: Recording, notes: list[str], interpolated: NDArray[n
             continue
         off = np.abs(v[1:] - np.diff(x) / dt)
         steps = np.abs(np.diff(x))
-        step = float(np.min(steps[steps > 0], initial=0.0))
+        step = float(np.min(steps[steps > 0])) if steps.any() else 0.0
         limit = max(GLITCH_FACTOR * float(np.percentile(off, 99)), 2.0 * step / float(np.max(dt)))
         glitch = np.concatenate(([False], off > limit)) & known
         if glitch.any() and glitch.mean() < 0.01:
