@@ -139,6 +139,9 @@ class PtyLink:
         self.bytes_out = 0
         self.dropped_bytes = 0
         self.closed = False
+        # set before hang_up takes the lock: a writer that releases and at once retakes it (a device
+        # sending in a loop) would otherwise starve the hang-up, a lock being no queue
+        self._closing = False
         self._write_lock = threading.Lock()
         self.full_duplex = full_duplex
         self._free_at = {"in": 0.0, "out": 0.0}  # when each direction's line is next free
@@ -184,6 +187,8 @@ class PtyLink:
 
     def write(self, data: bytes) -> bool:
         """Send to the host; False once hung up."""
+        if self._closing:
+            return False
         with self._write_lock:
             if self.closed:
                 return False
@@ -199,7 +204,7 @@ class PtyLink:
                 except OSError:
                     return False
                 wait_s = deadline - time.monotonic()
-                if wait_s <= 0.0:
+                if wait_s <= 0.0 or self._closing:
                     self.dropped_bytes += len(view)
                     break
                 select.select([], [self.master], [], min(wait_s, 0.05))
@@ -208,6 +213,7 @@ class PtyLink:
 
     def hang_up(self) -> None:
         """Close the pty (both ends the device holds): what a pulled cable looks like. Idempotent."""
+        self._closing = True
         with self._write_lock:
             if self.closed:
                 return
