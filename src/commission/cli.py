@@ -663,6 +663,10 @@ def _rows(result: dict[str, Any]) -> list[tuple[str, str]]:
             ("resonance", _mode_text(md, "resonance")),
             ("anti-resonance", _mode_text(md, "antiresonance")),
         ]
+        if ident.get("cogging"):
+            cg = ident["cogging"]
+            rows.append(("cogging / ripple", f"{', '.join(map(str, cg['harmonics_per_revolution']))} per revolution, "
+                                             f"{cg['peak_nm']:.3g} N·m peak (taken out of the torque)"))
         fit = ident.get("fit")
         if fit is not None:
             rows.append(("model fit", f"{100 * fit['residual_ratio']:.3g} % of the torque unexplained"

@@ -119,6 +119,9 @@ class Identification:
     with motor_interval_nm / load_interval_nm (95 %); None when none kept."""
     current_loop: dict[str, Any] | None = None
     """Kept current-loop lag (hybrid): bandwidth_hz, bandwidth_interval_hz, time_constant_s; None when not kept."""
+    cogging: dict[str, Any] | None = None
+    """A torque periodic in the motor's position taken out of τ_ref (hybrid; commission.ident.cogging.Cogging's
+    fields): harmonics_per_revolution, cos_nm, sin_nm, peak_nm, explained; None when none found."""
     selection: dict[str, Any] | None = None
     """Model selection (hybrid): per candidate term its Wald z², the threshold ln n, kept."""
     measured_band_hz: tuple[float, float] | None = None
@@ -175,6 +178,8 @@ class Identification:
             out["friction"] = dict(self.friction)
         if self.current_loop is not None:
             out["current_loop"] = dict(self.current_loop)
+        if self.cogging is not None:
+            out["cogging"] = dict(self.cogging)
         if self.selection is not None:
             out["model_selection"] = dict(self.selection)
         if self.measured_band_hz is not None:
