@@ -662,33 +662,21 @@ def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_
 
 
 def _cogging_stage(run: _Run, pem: PemFit) -> tuple[_Run, PemFit]:
-    """A torque periodic in the motor's position (cogging, ripple) in the residual at the estimate, with the
-    configured observer: taken out of the record's torque and the estimate fitted again from there, kept
-    when the record is then likelier by more than the BIC's price of the series' coefficients."""
-    from .cogging import find_cogging
-    from .residual import Observer, motor_position_samples, torque_residual
+    """A torque periodic in the motor's position (cogging, ripple) in the residual at the estimate: taken out of
+    the record's torque and the estimate fitted again from there, kept when the record is then likelier by more
+    than the BIC's price of the series' coefficients."""
+    from .residual import motor_position_samples
 
-    # a tenth of the configured observer's bandwidth: the configured one follows much of a cogging torque as the
-    # load's motion (at the reference plant's truth it leaves 63 % of it in the residual, a tenth 95 %)
-    p, fc = pem.parameters, run.problem.cutoff_hz
-    observer = Observer.design(run.fs, _COGGING_OBSERVER * run.opt.observer_bandwidth_factor * fc, 2.0 * fc, p.K,
-                               p.D, load_encoder=run.use_load)
-    res = torque_residual(run.problem, p.J_m, p.J_l, p.B_m, p.B_l, p.K, p.D, pem.epsilon_rad,
-                          coulomb_motor_nm=pem.coulomb_motor_nm,
-                          coulomb_load_nm=pem.coulomb_load_nm if pem.terms.coulomb_load else None, lag_s=pem.lag_s,
-                          observer=observer)
     x = motor_position_samples(run.rec.motor_position, run.rec.motor_velocity, run.fs)
-    found = find_cogging(res.residual, x[1:-1], lowpass=functools.partial(sosfiltfilt, run.problem.sos),
-                         decimation=run.problem.decimation)
+    found = _cogging_in(run, pem, x)
     if found is None:
         return run, pem
     # over [k·Ts, (k+1)·Ts) the motor feels τ_c at its mean position there, whatever delay the reference has
-    tau_c = found.torque(0.5 * (x[:-1] + x[1:]))
-    d = max(int(run.delay_samples), 0)
+    tau_c, d = found.torque(0.5 * (x[:-1] + x[1:])), max(int(run.delay_samples), 0)
     tau_c = np.concatenate((tau_c[d:], np.full(d + 1, tau_c[-1])))
     other = replace(run, rec=run.rec.replace(torque_ref=run.rec.torque_ref + tau_c), kalman=None, notes=[],
                     cogging=found)
-    other.problem = other.prepared(fc)
+    other.problem = other.prepared(run.problem.cutoff_hz)
     again = _kalman_stage(other, pem)
     spent = pem.evaluations + again.evaluations
     what = (f"a torque periodic in the motor's position (cogging or ripple: {', '.join(map(str, found.harmonics))} "
@@ -700,6 +688,25 @@ def _cogging_stage(run: _Run, pem: PemFit) -> tuple[_Run, PemFit]:
                                f"{_likelier(_likelihood_cost(pem), _likelihood_cost(again))}× as likely per "
                                "prediction error"]
     return other, replace(again, evaluations=spent)
+
+
+def _cogging_in(run: _Run, pem: PemFit, x: NDArray[np.float64]) -> Any:
+    """The cogging (commission.ident.cogging.Cogging) in the torque residual at ``pem``, None if none; ``x`` the
+    motor's position [rad], shape (N,)."""
+    from .cogging import find_cogging
+    from .residual import Observer, torque_residual
+
+    # a tenth of the configured observer's bandwidth: the configured one follows much of a cogging torque as the
+    # load's motion (at the reference plant's truth it leaves 63 % of it in the residual, a tenth 95 %)
+    p, fc = pem.parameters, run.problem.cutoff_hz
+    observer = Observer.design(run.fs, _COGGING_OBSERVER * run.opt.observer_bandwidth_factor * fc, 2.0 * fc, p.K,
+                               p.D, load_encoder=run.use_load)
+    res = torque_residual(run.problem, p.J_m, p.J_l, p.B_m, p.B_l, p.K, p.D, pem.epsilon_rad,
+                          coulomb_motor_nm=pem.coulomb_motor_nm,
+                          coulomb_load_nm=pem.coulomb_load_nm if pem.terms.coulomb_load else None, lag_s=pem.lag_s,
+                          observer=observer)
+    return find_cogging(res.residual, x[1:-1], lowpass=functools.partial(sosfiltfilt, run.problem.sos),
+                        decimation=run.problem.decimation)
 
 
 def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool = True) -> PemFit:
