@@ -671,9 +671,10 @@ def _cogging_stage(run: _Run, pem: PemFit) -> tuple[_Run, PemFit]:
     found = _cogging_in(run, pem, x)
     if found is None:
         return run, pem
-    # over [k·Ts, (k+1)·Ts) the motor feels τ_c at its mean position there, whatever delay the reference has
-    tau_c, d = found.torque(0.5 * (x[:-1] + x[1:])), max(int(run.delay_samples), 0)
-    tau_c = np.concatenate((tau_c[d:], np.full(d + 1, tau_c[-1])))
+    # over [k·Ts, (k+1)·Ts) the motor feels τ_c at its mean position there (a delay the stage after this one
+    # finds delays it with τ_ref: a sample, a few degrees of a cogging's period)
+    tau_c = found.torque(0.5 * (x[:-1] + x[1:]))
+    tau_c = np.append(tau_c, tau_c[-1])
     other = replace(run, rec=run.rec.replace(torque_ref=run.rec.torque_ref + tau_c), kalman=None, notes=[],
                     cogging=found)
     other.problem = other.prepared(run.problem.cutoff_hz)
