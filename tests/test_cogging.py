@@ -48,6 +48,8 @@ def test_noise_alone_and_a_travel_too_short_hold_no_cogging():
     # 0.5 rad of travel: the 50th harmonic fits 4 periods, fewer than a harmonic needs to be told from motion
     short = 0.25 * np.sin(2 * np.pi * 0.5 * np.arange(n) / fs)
     assert find_cogging(3e-3 * np.sin(50 * short), short) is None
+    # a diverged simulation's residual
+    assert all(find_cogging(np.where(x > 5.0, bad, 0.0), x) is None for bad in (1e200, np.inf, np.nan))
 
 
 def test_model_error_that_constant_speed_maps_onto_a_harmonic_is_not_cogging():

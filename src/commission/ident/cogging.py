@@ -101,10 +101,13 @@ def find_cogging(residual_nm: NDArray[np.float64], motor_position_rad: NDArray[n
     """
     x = np.asarray(motor_position_rad, dtype=np.float64)
     r = np.asarray(residual_nm, dtype=np.float64)
-    r = r - r.mean()
+    with np.errstate(over="ignore", invalid="ignore"):
+        # (a fit's load simulation can diverge at an estimate far off: no torque to search then)
+        r = r - r.mean()
+        finite = math.isfinite(float(np.dot(r, r)))
     span = float(x.max() - x.min()) if x.size else 0.0
     lo = max(1, math.ceil(MIN_CYCLES * 2.0 * math.pi / span)) if span > 0.0 else MAX_HARMONIC + 1
-    if lo > MAX_HARMONIC or not np.any(r):
+    if lo > MAX_HARMONIC or not finite or not np.any(r):
         return None
 
     def columns(harmonics: list[int]) -> NDArray[np.float64]:
