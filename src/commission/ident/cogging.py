@@ -83,7 +83,7 @@ def _periodogram(r: NDArray[np.float64], x: NDArray[np.float64], lo: int, hi: in
 
 def find_cogging(residual_nm: NDArray[np.float64], motor_position_rad: NDArray[np.float64],
                  lowpass: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
-                 decimation: int = 1) -> Cogging | None:
+                 decimation: int = 1, harmonics: tuple[int, ...] | None = None) -> Cogging | None:
     """The harmonics of the motor's position that a torque residual holds beyond its noise, fitted (None: none).
 
     :param residual_nm: the model's torque residual, J_m·ẍ_m + … − τ_ref [N·m], shape (N,): τ_c where the
@@ -92,6 +92,7 @@ def find_cogging(residual_nm: NDArray[np.float64], motor_position_rad: NDArray[n
     :param lowpass: the filter the residual went through, applied to the series' columns too (a harmonic
         passed fast is attenuated as the residual's torque was).
     :param decimation: every how many samples the periodogram reads (the residual's band allows).
+    :param harmonics: fit these, without a search or a check (what an earlier call found, again).
 
     Harmonics are taken one at a time, the strongest first, each fitted with those before it: a harmonic's
     own periodogram leaks into its neighbours where the travel is short. A harmonic is kept when the slower and
@@ -117,6 +118,10 @@ def find_cogging(residual_nm: NDArray[np.float64], motor_position_rad: NDArray[n
     def fitted(harmonics: list[int], rows: NDArray[np.bool_] | slice = slice(None)) -> NDArray[np.float64]:
         return np.linalg.lstsq(columns(harmonics)[rows], r[rows] - r[rows].mean(), rcond=None)[0]
 
+    if harmonics:
+        coef = fitted(list(harmonics))
+        return Cogging(tuple(harmonics), tuple(float(a) for a in coef[0::2]), tuple(float(b) for b in coef[1::2]),
+                       float(1.0 - np.var(r - columns(list(harmonics)) @ coef) / np.var(r)))
     chosen: list[int] = []
     left = r
     for _ in range(MAX_TERMS):
