@@ -118,10 +118,14 @@ def find_cogging(residual_nm: NDArray[np.float64], motor_position_rad: NDArray[n
     def fitted(harmonics: list[int], rows: NDArray[np.bool_] | slice = slice(None)) -> NDArray[np.float64]:
         return np.linalg.lstsq(columns(harmonics)[rows], r[rows] - r[rows].mean(), rcond=None)[0]
 
-    if harmonics:
-        coef = fitted(list(harmonics))
+    def series(harmonics: list[int]) -> Cogging:
+        A = columns(harmonics)
+        coef = np.linalg.lstsq(A, r, rcond=None)[0]
         return Cogging(tuple(harmonics), tuple(float(a) for a in coef[0::2]), tuple(float(b) for b in coef[1::2]),
-                       float(1.0 - np.var(r - columns(list(harmonics)) @ coef) / np.var(r)))
+                       float(1.0 - np.var(r - A @ coef) / np.var(r)))
+
+    if harmonics:
+        return series(list(harmonics))
     chosen: list[int] = []
     left = r
     for _ in range(MAX_TERMS):
@@ -144,10 +148,5 @@ def find_cogging(residual_nm: NDArray[np.float64], motor_position_rad: NDArray[n
         za, zb = a[0::2] + 1j * a[1::2], b[0::2] + 1j * b[1::2]
         agree = np.abs(za - zb) < CONSISTENCY * np.maximum(np.abs(za), np.abs(zb))
         chosen = [n for n, ok in zip(chosen, agree) if ok]
-    if not chosen:
-        return None
-    coef = fitted(chosen)
-    explained = float(1.0 - np.var(r - columns(chosen) @ coef) / np.var(r))
-    if explained < MIN_EXPLAINED:
-        return None
-    return Cogging(tuple(chosen), tuple(float(a) for a in coef[0::2]), tuple(float(b) for b in coef[1::2]), explained)
+    found = series(chosen) if chosen else None
+    return found if found is not None and found.explained >= MIN_EXPLAINED else None

@@ -665,9 +665,7 @@ def _cogging_stage(run: _Run, pem: PemFit) -> tuple[_Run, PemFit]:
     """A torque periodic in the motor's position (cogging, ripple) in the residual at the estimate: taken out of
     the record's torque and the estimate fitted again from there (once more where a tenth of it was left), kept
     when the record is then likelier by more than the BIC's price of the series' coefficients."""
-    from .residual import motor_position_samples
-
-    x = motor_position_samples(run.rec.motor_position, run.rec.motor_velocity, run.fs)
+    x = run.kalman.motor_position  # (the motor position as the Kalman stage read the record, rebuilt if need be)
     found = _cogging_in(run, pem, x)
     if found is None:
         return run, pem
