@@ -168,6 +168,7 @@ def _curves(rec: Recording, ident: Any, config: Mapping[str, Any] | None,
     p, eps = ident.parameters, float(ident.epsilon_rad)
     delay = max(0, int(round(float(ident.delay_s) * fs)))
     model = _sampled(p.velocity_response(f_dense), f_dense, fs, float(ident.delay_s))
+    u = _applied_torque(rec, ident)
     sim = simulate_deadzone(p, eps, u, fs, delay_samples=delay)
     sim0 = simulate_deadzone(p, 0.0, u, fs, delay_samples=delay) if eps > 0 else sim
     v_lin_meas = v - (sim.motor_velocity - sim0.motor_velocity)
@@ -187,6 +188,20 @@ def _curves(rec: Recording, ident: Any, config: Mapping[str, Any] | None,
         mx[i] = float(np.max(np.abs(d)))
     return _Curves(frd, frd_corr, frd_model, f_dense, model, true, sim.motor_velocity, sim0.motor_velocity,
                    sim.twist, grid, rms, mx, band, warnings)
+
+
+def _applied_torque(rec: Recording, ident: Any) -> NDArray[np.float64]:
+    """τ_ref plus the cogging the identification found (as the hybrid stage added it: over each interval, at the
+    motor's mid position) [N·m], shape (N,): the torque the simulations are driven by."""
+    found = getattr(ident, "cogging", None)
+    if not found:
+        return rec.torque_ref
+    from .ident.cogging import Cogging
+    from .ident.residual import motor_position_samples
+
+    x = motor_position_samples(rec.motor_position, rec.motor_velocity, rec.sample_rate_hz)
+    tau_c = Cogging.from_dict(found).torque(0.5 * (x[:-1] + x[1:]))
+    return rec.torque_ref + np.append(tau_c, tau_c[-1])
 
 
 def _zoom_window(rec: Recording, c: _Curves, eps: float) -> tuple[int, int, str]:

@@ -11,7 +11,7 @@ encoder measures: a periodogram over whole harmonics per revolution finds it, an
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -63,6 +63,12 @@ class Cogging:
     def to_dict(self) -> dict[str, Any]:
         return {"harmonics_per_revolution": list(self.harmonics), "cos_nm": list(self.cos_nm),
                 "sin_nm": list(self.sin_nm), "peak_nm": self.peak_nm, "explained": self.explained}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping[str, Any]) -> Cogging:
+        """The inverse of :meth:`to_dict` (result.json's ``cogging``)."""
+        return cls(tuple(int(n) for n in doc["harmonics_per_revolution"]), tuple(map(float, doc["cos_nm"])),
+                   tuple(map(float, doc["sin_nm"])), float(doc["explained"]))
 
 
 def _basis(x: NDArray[np.float64], harmonics: tuple[int, ...]) -> NDArray[np.float64]:
