@@ -281,7 +281,8 @@ def _start_stage(run: _Run) -> None:
     try:
         run.start = frequency_start(run.rec, run.problem, band_hz=run.band, resolution_hz=run.resolution,
                                     quality_threshold=opt.quality_threshold,
-                                    fit_delay="current_loop" in opt.model_terms, notes=run.notes)
+                                    fit_delay="current_loop" in opt.model_terms, notes=run.notes,
+                                    raise_edges=not run.use_load)
     except IdentificationError as err:
         if not run.use_load:
             raise

@@ -130,8 +130,11 @@ def _masked_fit(frd: FRD, quality_threshold: float, fit_delay: bool) -> tuple[Tr
 
 def frequency_start(rec: Recording, problem: ResidualProblem, *, band_hz: tuple[float, float],
                     resolution_hz: float, quality_threshold: float, fit_delay: bool,
-                    notes: list[str]) -> Start:
-    """The FRD, its fit, and the physical start (see the module docstring)."""
+                    notes: list[str], raise_edges: bool = True) -> Start:
+    """The FRD, its fit, and the physical start (see the module docstring). ``raise_edges`` False: the
+    whole band's fit only, no search over raised low band edges (a load encoder's record, whose start
+    comes from the encoders: of the FRD's start only the delay is used, and the search was most of the
+    start's time)."""
     fs = rec.sample_rate_hz
     frd = estimate_frd(rec.torque_ref, rec.motor_velocity, fs, band_hz=band_hz, resolution_hz=resolution_hz)
     fits: list[tuple[float, TransferFunctionFit]] = []
@@ -141,7 +144,8 @@ def frequency_start(rec: Recording, problem: ResidualProblem, *, band_hz: tuple[
         whole, masked = _masked_fit(frd, quality_threshold, fit_delay)
         fits.append((band_hz[0], whole))
     except IdentificationError as err:
-        notes.append(f"frequency-domain fit of the whole band failed ({err}); low band edges raised")
+        notes.append(f"frequency-domain fit of the whole band failed ({err})"
+                     + ("; low band edges raised" if raise_edges else ""))
     if masked:
         notes.append(f"frequency-domain start: {masked} of {frd.frequency_hz.size} FRD bins left out "
                      f"(quality < {quality_threshold:g})")
@@ -166,7 +170,7 @@ def frequency_start(rec: Recording, problem: ResidualProblem, *, band_hz: tuple[
     above = frd.frequency_hz >= 5.0
     f_peak = (float(frd.frequency_hz[above][np.argmax(np.abs(frd.response[above]) * frd.frequency_hz[above])])
               if above.any() else 0.0)
-    edges = _RAISED_EDGES_HZ + ((_HIGH_EDGE_HZ,) if f_peak >= 3.0 * _HIGH_EDGE_HZ else ())
+    edges = _RAISED_EDGES_HZ + ((_HIGH_EDGE_HZ,) if f_peak >= 3.0 * _HIGH_EDGE_HZ else ()) if raise_edges else ()
     for f_lo in (f for f in edges if band_hz[0] < f < 0.1 * band_hz[1]):
         try:
             fits.append((f_lo, _masked_fit(_bins(frd, frd.frequency_hz >= f_lo - 1e-9 * frd.resolution_hz),
