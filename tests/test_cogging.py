@@ -108,13 +108,12 @@ _ONE_PERCENT = 0.01 * (ExcitationConfig().amplitude_nm + ExcitationConfig().bias
 def test_a_replayed_record_with_cogging_is_identified_within_tolerance_and_says_so(tmp_path, capsys):
     # before the cogging stage: flagged, the model needing a torque disturbance of 2.8 % of RMS τ_ref
     write_csv(tmp_path / "axis.csv", _cogging_record(_ONE_PERCENT, 50))
-    assert main(["--replay", str(tmp_path / "axis.csv"), "--out", str(tmp_path / "o"), "--no-tune"]) == 0
+    assert main(["--replay", str(tmp_path / "axis.csv"), "--out", str(tmp_path / "o")]) == 0
     _checked(json.loads((tmp_path / "o" / "result.json").read_text()), _ONE_PERCENT)
     assert "cogging / ripple" in capsys.readouterr().out
     # what is left is the record's noise: the tuning keeps its backlash compensation (it drops it where more than
     # 0.5 % of the torque is left unexplained and not white, as 17 % of this cogging left it)
-    assert main(["--replay", str(tmp_path / "axis.csv"), "--out", str(tmp_path / "t")]) == 0
-    assert json.loads((tmp_path / "t" / "controller.json").read_text())["backlash_compensation"]["enabled"]
+    assert json.loads((tmp_path / "o" / "controller.json").read_text())["backlash_compensation"]["enabled"]
 
 
 def test_a_record_with_cogging_and_a_load_encoder_is_identified_within_tolerance_and_the_report_applies_it():
