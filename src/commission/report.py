@@ -200,8 +200,7 @@ def _applied_torque(rec: Recording, ident: Any) -> NDArray[np.float64]:
     from .ident.residual import motor_position_samples
 
     x = motor_position_samples(rec.motor_position, rec.motor_velocity, rec.sample_rate_hz)
-    tau_c = Cogging.from_dict(found).torque(0.5 * (x[:-1] + x[1:]))
-    return rec.torque_ref + np.append(tau_c, tau_c[-1])
+    return rec.torque_ref + Cogging.from_dict(found).interval_torque(x)
 
 
 def _zoom_window(rec: Recording, c: _Curves, eps: float) -> tuple[int, int, str]:

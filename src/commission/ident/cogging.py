@@ -55,6 +55,13 @@ class Cogging:
         x = np.asarray(motor_position_rad, dtype=np.float64)
         return _basis(x, self.harmonics) @ np.ravel(np.column_stack((self.cos_nm, self.sin_nm)))
 
+    def interval_torque(self, motor_position_rad: NDArray[np.float64]) -> NDArray[np.float64]:
+        """τ_c over each sample interval [k·Ts, (k+1)·Ts), at the motor's mean position there (the last interval's
+        repeated for the last sample) [N·m], shape (N,) of ``motor_position_rad`` [rad]: what is added to τ_ref."""
+        x = np.asarray(motor_position_rad, dtype=np.float64)
+        tau = self.torque(0.5 * (x[:-1] + x[1:]))
+        return np.append(tau, tau[-1])
+
     @property
     def peak_nm(self) -> float:
         """Largest |τ_c| over one revolution [N·m]."""

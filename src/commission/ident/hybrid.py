@@ -672,10 +672,8 @@ def _cogging_stage(run: _Run, pem: PemFit) -> tuple[_Run, PemFit]:
         return run, pem
     other, again, spent = run, pem, pem.evaluations
     for refined in (False, True):
-        # over [k·Ts, (k+1)·Ts) the motor feels τ_c at its mean position there (a delay the stage after this one
-        # finds delays it with τ_ref: a sample, a few degrees of a cogging's period)
-        tau_c = found.torque(0.5 * (x[:-1] + x[1:]))
-        other = replace(run, rec=run.rec.replace(torque_ref=run.rec.torque_ref + np.append(tau_c, tau_c[-1])),
+        # (a delay the stage after this one finds delays τ_c with τ_ref: a sample, a few degrees of its period)
+        other = replace(run, rec=run.rec.replace(torque_ref=run.rec.torque_ref + found.interval_torque(x)),
                         kalman=None, notes=[], cogging=found)
         other.problem = other.prepared(run.problem.cutoff_hz)
         again = _kalman_stage(other, again)

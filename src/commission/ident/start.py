@@ -170,7 +170,7 @@ def frequency_start(rec: Recording, problem: ResidualProblem, *, band_hz: tuple[
     above = frd.frequency_hz >= 5.0
     f_peak = (float(frd.frequency_hz[above][np.argmax(np.abs(frd.response[above]) * frd.frequency_hz[above])])
               if above.any() else 0.0)
-    edges = _RAISED_EDGES_HZ + ((_HIGH_EDGE_HZ,) if f_peak >= 3.0 * _HIGH_EDGE_HZ else ()) if raise_edges else ()
+    edges = (_RAISED_EDGES_HZ + ((_HIGH_EDGE_HZ,) if f_peak >= 3.0 * _HIGH_EDGE_HZ else ())) if raise_edges else ()
     for f_lo in (f for f in edges if band_hz[0] < f < 0.1 * band_hz[1]):
         try:
             fits.append((f_lo, _masked_fit(_bins(frd, frd.frequency_hz >= f_lo - 1e-9 * frd.resolution_hz),
