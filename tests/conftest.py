@@ -1,9 +1,10 @@
-"""Runs that several test modules read: each is made once per session (a default `commission --sim` run
-costs seconds, and reading its outputs is what most command-line tests do)."""
+"""Runs that several test modules read: each is made once per test run, by whichever worker asks first (a
+default `commission --sim` run costs seconds, and reading its outputs is what most command-line tests do)."""
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import io
 import json
 import math
@@ -40,18 +41,35 @@ def run_cli(*argv: str | Path, out: Path | None = None) -> CliRun:
     return CliRun(code, stdout.getvalue(), stderr.getvalue(), Path(out) if out is not None else Path())
 
 
+def _made_once(tmp_path_factory: pytest.TempPathFactory, worker_id: str, name: str, *argv: str) -> CliRun:
+    """``commission ARGV`` made by the first pytest-xdist worker that asks for it; the others read its
+    directory and what it printed (a run costs seconds on every worker otherwise). The lock keeps a
+    worker from reading a run another is still making."""
+    if worker_id == "master":  # not under xdist: this process's own temporary folder
+        return run_cli(*argv, out=tmp_path_factory.mktemp(name))
+    root = tmp_path_factory.getbasetemp().parent  # shared by this run's workers, new for every run
+    done = root / f"{name}.json"
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            run = run_cli(*argv, out=root / name)
+            done.write_text(json.dumps({"code": run.code, "stdout": run.stdout, "stderr": run.stderr}))
+    d = json.loads(done.read_text())
+    return CliRun(d["code"], d["stdout"], d["stderr"], root / name)
+
+
 @pytest.fixture(scope="session")
-def default_sim_run(tmp_path_factory: pytest.TempPathFactory) -> CliRun:
+def default_sim_run(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> CliRun:
     """`commission --sim --out DIR --json` with the shipped default recipe (the paper's 10 s experiment)."""
-    run = run_cli("--sim", "--json", out=tmp_path_factory.mktemp("default-sim"))
+    run = _made_once(tmp_path_factory, worker_id, "default-sim", "--sim", "--json")
     assert run.code == 0, run.stderr
     return run
 
 
 @pytest.fixture(scope="session")
-def quick_sim_run(tmp_path_factory: pytest.TempPathFactory) -> CliRun:
+def quick_sim_run(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> CliRun:
     """`commission --sim --config quick --json`: the shipped 2 s recipe, for modes that only need a run."""
-    run = run_cli("--sim", "--config", "quick", "--json", out=tmp_path_factory.mktemp("quick-sim"))
+    run = _made_once(tmp_path_factory, worker_id, "quick-sim", "--sim", "--config", "quick", "--json")
     assert run.code == 0, run.stderr
     return run
 
@@ -65,3 +83,13 @@ def two_mass_plant(ratio: float, f_r: float, zeta: float, B_l: float | None = No
     return TwoMassParameters(J_m=J_m, J_l=J_l, B_m=0.84e-2,
                              B_l=B_l if B_l is not None else 0.53e-2 * math.sqrt(ratio / 0.4),
                              K=w * w * J_l / (1 + ratio), D=2 * zeta * w / (1 / J_m + 1 / J_l))
+
+
+#: The files that take longest (a third of the suite's time between them; `pytest --durations=0`), run
+#: first: with ``--dist loadfile`` a file stays on one worker, and one started last holds the others idle.
+SLOWEST_FIRST = ("test_identify.py", "test_hybrid.py", "test_serial_e2e.py", "test_safety.py", "test_cli.py")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    rank = {name: i for i, name in enumerate(SLOWEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the rest keep their order
