@@ -9,8 +9,13 @@ import numpy as np
 import pytest
 
 from commission.cli import main
+from commission.config import ExcitationConfig
 from commission.csvlog import read_csv, write_csv
+from commission.excitation import chirp
+from commission.ident.twomass import REFERENCE_PLANT
 from commission.mcaplog import read_recording
+from commission.recording import Recording
+from sim_drive.plant import Plant, PlantParameters
 
 
 @pytest.fixture(scope="module")
@@ -156,23 +161,27 @@ def test_identification_bad_input_is_one_line_exit_6(good_csv, tmp_path, capsys,
     assert fragment in _one_line_error(argv, capsys, 6)
 
 
-def test_a_record_the_model_cannot_explain_writes_everything_and_exits_8(good_csv, tmp_path, capsys):
-    # a velocity that has nothing to do with the torque: a result, flagged approximate with its
-    # reasons, result.json and the report written; the exit code says it is approximate
-    rec = read_csv(good_csv)
-    rec = rec.head(2 * int(rec.sample_rate_hz))  # 2 s: the flagged path's stages at a fifth of the 10 s cost
-    v = np.cumsum(np.random.default_rng(0).standard_normal(len(rec))) * 0.01
+def test_a_record_the_model_cannot_explain_writes_everything_and_exits_8(tmp_path, capsys):
+    # a 3 Hz, 10 rad/s motion the torque did not cause (an external disturbance) on a velocity-only log: a
+    # result, flagged approximate with its reasons, result.json and the report written; the exit code says so
+    fs = 8000.0  # a 2 s chirp: the flagged path's stages at a fifth of the 10 s cost
+    r = Plant(PlantParameters(**REFERENCE_PLANT.as_dict(), epsilon_deg=0.4, torque_noise_nm=1e-4, seed=11),
+              fs).run_torque(chirp(ExcitationConfig(duration_s=2.0)).samples)
+    t = np.arange(len(r.torque_ref)) / fs
     f = tmp_path / "in.csv"
-    write_csv(f, rec.replace(motor_velocity=v, motor_position=np.cumsum(v) / 8000.0))
+    write_csv(f, Recording.uniform(fs, r.torque_ref, r.motor_velocity + 10.0 * np.sin(2 * np.pi * 3.0 * t)))
     out = tmp_path / "o"
     assert main(["--replay", str(f), "--out", str(out), "--no-tune"]) == 8
     doc = json.loads((out / "result.json").read_text())
-    assert doc["fit"]["approximate"] is True and doc["fit"]["reasons"]
+    assert doc["fit"]["approximate"] is True
+    assert any("unexplained" in r for r in doc["fit"]["reasons"]), doc["fit"]["reasons"]
     # predictions that miss by far more than their predicted size determine nothing: ε's interval is then
     # everything the identifier could have reported, not a narrow band around the estimate
     assert doc["fit"]["determined"] is False
     lo, hi = doc["backlash"]["epsilon_interval_deg"]
     assert lo == 0.0 and hi >= 16.0 and hi >= doc["backlash"]["epsilon_deg"]
+    # and no reason names a narrower one (it said "the record bounds ε only to [1.01°, 4°]" beside it)
+    assert not any("only to" in r for r in doc["fit"]["reasons"]), doc["fit"]["reasons"]
     assert (out / "report.html").exists()
     assert "APPROXIMATE" in capsys.readouterr().out
 

@@ -221,16 +221,6 @@ def test_saturated_velocity() -> None:
         identify(rec.replace(motor_velocity=v, motor_position=None))
 
 
-def test_data_the_model_cannot_explain_give_a_flagged_result_not_nothing() -> None:
-    # (3 s of the reference chirp: every stage a record no model explains goes through, at a third of the cost)
-    rec = _record(*PLANTS["reference"], duration_s=3.0)
-    # a 3 Hz, 10 rad/s motion that the torque did not cause (an external disturbance)
-    v = rec.motor_velocity + 10.0 * np.sin(2 * np.pi * 3.0 * rec.t)
-    res = identify(rec.replace(motor_velocity=v, motor_position=None))
-    assert res.fit is not None and res.fit.approximate
-    assert any("unexplained" in r for r in res.fit.reasons)
-
-
 def test_likelihood_ratios_past_a_floats_range_are_written_as_powers_of_ten() -> None:
     """A record no model explains (a random-walk velocity beside a drive with 3 samples of delay) moved its
     likelihood by ~1500 e-folds per sample between two delays: the note's exp() overflowed and the whole

@@ -194,7 +194,8 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float, load_enc
     if not fit.converged:
         reasons.append("the least squares stopped at its evaluation limit before converging: the parameters "
                        "may not be at the fit's optimum, and the intervals (from the curvature there) may not hold")
-    reasons += _interval_reasons(fit)
+    if determined:  # else the first reason says the intervals are unbounded: no narrower one is named
+        reasons += _interval_reasons(fit)
     return FitQuality(residual_ratio=disturbance * max(1.0, level), noise_floor_ratio=0.0, spectral_flatness=flat,
                       window_rms_p90_over_median=stationary, noise_limited=bool(white and not misfit),
                       approximate=bool(reasons), reasons=tuple(reasons), cutoff_hz=0.5 * sample_rate_hz,
