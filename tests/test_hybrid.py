@@ -278,6 +278,7 @@ def test_friction_of_a_quarter_of_the_peak_torque_gives_a_result_in_one_piece():
     # error with nothing written). On 10 s it is identified within the tolerances, not flagged
     res = identify(_heavy_friction(0.08, duration_s=2.0))
     assert res.fit is not None and res.fit.approximate
+    assert any("never crosses the gap" in r for r in res.fit.reasons), res.fit.reasons
     d = json.loads(json.dumps(res.to_dict()))
     assert all(math.isfinite(v) for v in d["two_mass"].values())
     assert isinstance(d["fit"]["approximate"], bool)

@@ -252,7 +252,8 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
         st.start("delay", 0.65)
         pem, tried = _delay_stage(run, pem)
         st.done("delay", delay_samples=run.delay_samples, tried=tried)
-    if run.encoders is None and _model_error(run, pem):
+    # (the gap softens the spring the frequency response sees only where the load crosses it)
+    if run.encoders is None and _model_error(run, pem) and not _keeps_one_flank(run, pem):
         st.start("restarts", 0.7)
         run, cell, pem, restarts = _stiffer_starts(run, cell, pem)
         st.done("restarts", starts=restarts)
@@ -808,16 +809,30 @@ def _crosses_the_gap(run: _Run, pem: PemFit) -> bool:
     """Whether the shaft's torque changes sign in the estimate's load simulation (so the load crosses the
     gap, whatever its width): if not, every ε explains the record alike (a record cut from a run before the
     motor reverses). Without a torque-residual problem (none was built), assumed so."""
+    above, below = _flank_samples(run, pem)
+    return above >= _CROSSING_SAMPLES and below >= _CROSSING_SAMPLES
+
+
+def _keeps_one_flank(run: _Run, pem: PemFit) -> bool:
+    """Whether the estimate's shaft torque presses on one flank only (not: never on either, an estimate whose
+    gap the load never closes)."""
+    above, below = _flank_samples(run, pem)
+    return (above >= _CROSSING_SAMPLES) != (below >= _CROSSING_SAMPLES)
+
+
+def _flank_samples(run: _Run, pem: PemFit) -> tuple[int, int]:
+    """The samples of the estimate's load simulation whose shaft torque lies above, and below, ±
+    ``_CROSSING_LEVEL`` of its largest magnitude (both ``_CROSSING_SAMPLES`` without a torque-residual
+    problem: none was built)."""
     from .residual import simulate_load
 
     if run.problem is None:
-        return True
+        return _CROSSING_SAMPLES, _CROSSING_SAMPLES
     p = pem.parameters
     shaft = simulate_load(run.problem, p.J_l, p.B_l, p.K, p.D, pem.epsilon_rad,
                           pem.coulomb_load_nm if pem.terms.coulomb_load else None).shaft_torque
     level = _CROSSING_LEVEL * float(np.max(np.abs(shaft)))
-    return bool(np.count_nonzero(shaft > level) >= _CROSSING_SAMPLES
-                and np.count_nonzero(shaft < -level) >= _CROSSING_SAMPLES)
+    return int(np.count_nonzero(shaft > level)), int(np.count_nonzero(shaft < -level))
 
 
 #: The shaft's torque changes sign when at least this many samples lie beyond this share of its largest
