@@ -8,6 +8,7 @@ import fcntl
 import io
 import json
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,11 +42,11 @@ def run_cli(*argv: str | Path, out: Path | None = None) -> CliRun:
     return CliRun(code, stdout.getvalue(), stderr.getvalue(), Path(out) if out is not None else Path())
 
 
-def _made_once(tmp_path_factory: pytest.TempPathFactory, worker_id: str, name: str, *argv: str) -> CliRun:
+def _made_once(tmp_path_factory: pytest.TempPathFactory, name: str, *argv: str) -> CliRun:
     """``commission ARGV`` made by the first pytest-xdist worker that asks for it; the others read its
     directory and what it printed (a run costs seconds on every worker otherwise). The lock keeps a
     worker from reading a run another is still making."""
-    if worker_id == "master":  # not under xdist: this process's own temporary folder
+    if not os.environ.get("PYTEST_XDIST_WORKER"):  # not under xdist: this process's own temporary folder
         return run_cli(*argv, out=tmp_path_factory.mktemp(name))
     root = tmp_path_factory.getbasetemp().parent  # shared by this run's workers, new for every run
     done = root / f"{name}.json"
@@ -59,17 +60,17 @@ def _made_once(tmp_path_factory: pytest.TempPathFactory, worker_id: str, name: s
 
 
 @pytest.fixture(scope="session")
-def default_sim_run(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> CliRun:
+def default_sim_run(tmp_path_factory: pytest.TempPathFactory) -> CliRun:
     """`commission --sim --out DIR --json` with the shipped default recipe (the paper's 10 s experiment)."""
-    run = _made_once(tmp_path_factory, worker_id, "default-sim", "--sim", "--json")
+    run = _made_once(tmp_path_factory, "default-sim", "--sim", "--json")
     assert run.code == 0, run.stderr
     return run
 
 
 @pytest.fixture(scope="session")
-def quick_sim_run(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> CliRun:
+def quick_sim_run(tmp_path_factory: pytest.TempPathFactory) -> CliRun:
     """`commission --sim --config quick --json`: the shipped 2 s recipe, for modes that only need a run."""
-    run = _made_once(tmp_path_factory, worker_id, "quick-sim", "--sim", "--config", "quick", "--json")
+    run = _made_once(tmp_path_factory, "quick-sim", "--sim", "--config", "quick", "--json")
     assert run.code == 0, run.stderr
     return run
 
