@@ -109,9 +109,13 @@ def start_errors(result: Any, truth: dict[str, Any]) -> dict[str, float] | None:
 
 def evaluate(seed: int, index: int, resolution_from_duration: bool = False) -> dict[str, Any]:
     """Simulate and identify one member; the JSON line of the benchmark."""
-    m = member(seed, index)
+    return evaluate_member(member(seed, index), resolution_from_duration)
+
+
+def evaluate_member(m: Member, resolution_from_duration: bool = False) -> dict[str, Any]:
+    """Simulate and identify ``m`` (a family member, or one recorded otherwise); the JSON line of the benchmark."""
     truth = m.to_dict()
-    row: dict[str, Any] = {"id": m.id, "index": index, "classes": m.classes(), "label": label(m), "true": truth}
+    row: dict[str, Any] = {"id": m.id, "index": m.index, "classes": m.classes(), "label": label(m), "true": truth}
     rec = m.simulate()
     opts = options_for(m, resolution_from_duration)
     t0 = time.perf_counter()

@@ -4,7 +4,7 @@ simulated again with the one change a remedy in its ``fit.remedies`` names, and 
 Remedies followed: "record with a load encoder" (the member's sensors → motor and load encoders) and a named
 "end the chirp at N Hz" (the excitation's ``f_end_hz`` → N, and its sample rate where the remedy names one).
 Printed per remedy: how many of the members recorded again are within tolerance and not flagged, flagged, or
-silently wrong (``bench_family.judge``), and their times. Not part of ``make bench`` (it identifies every
+silently wrong (``bench_family.evaluate_member``), and their times. Not part of ``make bench`` (it identifies every
 flagged member twice more: an hour on the 21 flagged members of seeds 22–24's first 96).
 
     python bench/remedies.py --from run.jsonl --jobs 2        # the flagged members of a bench_family --out file
@@ -24,9 +24,8 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_family import _estimates, judge, options_for  # noqa: E402
+from bench_family import evaluate_member  # noqa: E402
 
-from commission.ident.hybrid import identify  # noqa: E402
 from sim_drive.family import Member, Sensors, member  # noqa: E402
 
 LOAD_ENCODER = "load encoder"
@@ -51,20 +50,9 @@ def followed(m: Member, remedy: str) -> tuple[str, Member] | None:
 
 def evaluate(job: tuple[str, Member]) -> dict[str, Any]:
     """One member recorded again as one remedy asks (``job``: the remedy's kind and the member), identified:
-    the JSON line."""
-    import time
-
+    ``bench_family``'s JSON line, with the remedy followed."""
     kind, m = job
-    t0 = time.perf_counter()
-    res = identify(m.simulate(), options_for(m))
-    dt = time.perf_counter() - t0
-    est = _estimates(res)
-    j = judge(m.to_dict(), est["estimate"])
-    within = all(j["within"].values())
-    verdict = "approximate" if est["approximate"] else ("within" if within else "silently_wrong")
-    return {"id": m.id, "remedy": kind, "f_end_hz": m.excitation.f_end_hz, "sample_rate_hz": m.sample_rate_hz,
-            "time_s": round(dt, 2), "verdict": verdict, "within_tolerance": within, "errors": j["errors"],
-            "remedies": est["fit"].get("remedies", [])}
+    return {"remedy": kind, **evaluate_member(m)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -99,13 +87,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         args.out.write_text("".join(json.dumps(r) + "\n" for r in rows))
     print(f"{'remedy followed':<16} {'members':>7} {'within':>7} {'flagged':>8} {'silently wrong':>15} "
-          f"{'median s':>9}")
+          f"{'no result':>10} {'median s':>9}")
     for kind in (LOAD_ENCODER, CHIRP_END):
         rs = [r for r in rows if r["remedy"] == kind]
         if rs:
-            n = {v: sum(r["verdict"] == v for r in rs) for v in ("within", "approximate", "silently_wrong")}
+            n = {v: sum(r["verdict"] == v for r in rs) for v in ("within", "approximate", "silently_wrong", "no_result")}
             print(f"{kind:<16} {len(rs):>7} {n['within']:>7} {n['approximate']:>8} {n['silently_wrong']:>15} "
-                  f"{statistics.median(r['time_s'] for r in rs):>9.1f}")
+                  f"{n['no_result']:>10} {statistics.median(r['time_s'] for r in rs):>9.1f}")
     return 0
 
 
