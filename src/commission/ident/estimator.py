@@ -424,6 +424,9 @@ _ROBUST_CONTINUATION = True
 #: family's wrong basins needed (both measured in bench/results/family.md).
 _SHARPEN_ABOVE = 2e-2
 _SHARPEN_ROUNDS = 2
+#: Further rounds of ``max_nfev`` iterations the final least squares gets when it stops at its evaluation
+#: limit (a round restarts the trust region too).
+_LIMIT_ROUNDS = 2
 #: ... and the levels the noise model is chosen among by likelihood at the first fit's optimum.
 _PROCESS_NOISE_GRID = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1)
 #: The Kalman fit's log-parameters are bounded to ×/÷ this around its start: its predictor stays finite
@@ -695,8 +698,14 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
         run = _KalmanFit(problem, start, epsilon_max_rad, pool, max_nfev, hedged)
         obj, z, res = run.continuation(keep_all)
         obj, z, res = run.sharpened(obj, z, res)
-        if not res.status > 0 and _hold_dampings(_held_covariance(res, run.free), run.free):
-            z, res = run.ls(obj, z, max_nfev)  # what stopped it may be a damping crawling toward 0
+        for _ in range(_LIMIT_ROUNDS):
+            if res.status > 0:
+                break
+            # stopped at the evaluation limit: a damping crawling toward 0 is held, and a fit still
+            # descending a long valley from a start far off in a pair the record ties together (23:012's
+            # B_m and B_l beside 9 % Coulomb friction) goes on
+            _hold_dampings(_held_covariance(res, run.free), run.free)
+            z, res = run.ls(obj, z, max_nfev)
         interval = None
         if z[6] > 0:
             obj, z, res, interval = run.polished(obj, z, res)
