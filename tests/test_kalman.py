@@ -388,6 +388,37 @@ def test_a_fit_stopped_at_its_limit_within_a_tenth_of_a_standard_error_of_its_op
     assert _within_a_step(np.stack((np.full(t.size, np.inf), t), axis=1), A @ best - y) is False
 
 
+def test_a_predictor_that_breaks_down_is_no_optimum_of_the_noise_model_nor_of_the_gaps_profile() -> None:
+    """A likelihood that is NaN (a predictor whose covariance broke down) is never taken for the least: the
+    noise model is chosen among the finite ones, and a profile of ε that is NaN throughout gives no start and
+    an unbounded interval (before: the NaN cell was chosen, and the profile raised IndexError)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from commission.ident.estimator import _PROCESS_NOISE_GRID, _epsilon_polish, _noise_level
+    from commission.ident.kalman import Innovations
+
+    def with_nll(value: float) -> Innovations:
+        v = np.full((4, 1), value)
+        return Innovations(error=v, normalized=np.sqrt(np.abs(v)), log_variance=np.zeros_like(v), events=0)
+
+    best = _PROCESS_NOISE_GRID[5]
+
+    def at(level: float, share: float) -> Innovations:
+        if level == _PROCESS_NOISE_GRID[1]:
+            return with_nll(math.nan)
+        return with_nll(1.0 + math.log(level / best) ** 2)
+
+    class Broken:
+        def innovations(self, z: np.ndarray, remember: bool = True) -> Innovations:
+            return with_nll(math.nan)
+
+    with ThreadPoolExecutor(2) as pool:
+        level, _ = _noise_level(at, pool)
+        assert level == pytest.approx(best, rel=0.01)
+        starts, interval = _epsilon_polish(Broken(), np.array([0.0] * 6 + [0.4]), 16.0, pool)  # type: ignore[arg-type]
+    assert starts == [] and interval == (0.0, 16.0)
+
+
 def test_a_start_whose_damping_collapsed_to_zero_gives_prediction_errors_and_an_assessment() -> None:
     # a torque-residual fit on a record no model explains can leave B_m at 1e-16 of the truth: there the gap's
     # two motor poles coincide and the predictor has no eigen decomposition; a Kalman fit started there stayed

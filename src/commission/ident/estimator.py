@@ -638,6 +638,7 @@ def _noise_level(at: Callable[[float, float], Innovations | None], pool: ThreadP
     cells = [(float(q), share) for share in _LOAD_SHARES for q in grid]
     nll = np.array(list(pool.map(lambda c: (lambda i: i.negative_log_likelihood() if i is not None else math.inf)(
         at(*c)), cells))).reshape(len(_LOAD_SHARES), grid.size)
+    nll[~np.isfinite(nll)] = math.inf  # (argmin would take a NaN for the least)
     j, i = np.unravel_index(int(np.argmin(nll)), nll.shape)
     share, row = _LOAD_SHARES[int(j)], nll[int(j)]
     if 0 < i < grid.size - 1 and np.all(np.isfinite(row[i - 1:i + 2])):
@@ -661,6 +662,9 @@ def _epsilon_polish(obj: _KalmanObjective, z: NDArray[np.float64], top_deg: floa
         return inn.negative_log_likelihood() * inn.normalized.size if inn is not None else math.inf
 
     costs = np.array(list(pool.map(nll, grid)))
+    costs[~np.isfinite(costs)] = math.inf  # a predictor that broke down there: no minimum
+    if not np.isfinite(costs).any():  # ... nor anywhere on the profile: nothing to polish, nothing bounded
+        return [], (0.0, top_deg)
     padded = np.concatenate(([math.inf], costs, [math.inf]))
     minima = [i for i in range(len(grid)) if padded[i + 1] <= padded[i] and padded[i + 1] <= padded[i + 2]]
     minima = sorted(minima, key=lambda i: costs[i])[:_POLISH_STARTS]
