@@ -33,6 +33,14 @@ def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(x * x)))
 
 
+def _start(p: TwoMassParameters, epsilon_rad: float, *, coulomb_motor_nm: float = 0.0,
+           terms: ModelTerms = ModelTerms()) -> PemFit:
+    """A Kalman fit's start: only its coordinates are read (its residual, covariance and the like are the fit's)."""
+    return PemFit(parameters=p, epsilon_rad=epsilon_rad, coulomb_motor_nm=coulomb_motor_nm, coulomb_load_nm=0.0,
+                  lag_s=0.0, terms=terms, residual=np.zeros(1), cost_nm=math.nan, names=(),
+                  covariance=np.zeros((0, 0)), n_effective=1.0, evaluations=0, converged=False, message="")
+
+
 @pytest.mark.parametrize("fs", [2000.0, 8000.0])
 def test_at_the_true_parameters_the_prediction_errors_are_the_encoders_noise(fs: float) -> None:
     tau, r = _record(fs, 4.0, encoder_bits_motor=20)
@@ -214,9 +222,7 @@ def test_the_estimator_recovers_a_plant_from_a_start_ten_percent_off() -> None:
     kp = kalman_problem(tau, r.motor_position, fs)
     start = TwoMassParameters(J_m=1.05 * true.J_m, J_l=0.9 * true.J_l, B_m=1.3 * true.B_m, B_l=0.7 * true.B_l,
                               K=1.1 * true.K, D=0.8 * true.D)
-    seed = PemFit(parameters=start, epsilon_rad=math.radians(0.36), coulomb_motor_nm=0.0, coulomb_load_nm=0.0,
-                  lag_s=0.0, terms=ModelTerms(), residual=np.zeros(1), cost_nm=math.nan, names=(),
-                  covariance=np.zeros((0, 0)), n_effective=1.0, evaluations=0, converged=False, message="")
+    seed = _start(start, math.radians(0.36))
     fit = kalman_fit(kp, seed, epsilon_max_rad=math.radians(2.0), threads=2, max_nfev=30)
     p = fit.parameters
     for name in ("J_m", "J_l", "K"):
@@ -327,9 +333,7 @@ def test_a_damping_the_record_does_not_determine_does_not_keep_the_fit_from_conv
     kp = kalman_problem(tau, r.motor_position, fs)
     start = TwoMassParameters(J_m=1.03 * true.J_m, J_l=0.95 * true.J_l, B_m=1.3 * true.B_m, B_l=0.05 * true.B_l,
                               K=0.95 * true.K, D=1.1 * true.D)
-    seed = PemFit(parameters=start, epsilon_rad=0.0, coulomb_motor_nm=0.0, coulomb_load_nm=0.0,
-                  lag_s=0.0, terms=ModelTerms(), residual=np.zeros(1), cost_nm=math.nan, names=(),
-                  covariance=np.zeros((0, 0)), n_effective=1.0, evaluations=0, converged=False, message="")
+    seed = _start(start, 0.0)
     fit = kalman_fit(kp, seed, epsilon_max_rad=math.radians(2.0), threads=2, max_nfev=30)
     assert fit.converged, fit.message
     p = fit.parameters
@@ -351,9 +355,7 @@ def test_a_fit_still_descending_at_its_evaluation_limit_goes_on_to_the_optimum()
     kp = kalman_problem(tau, r.motor_position, fs)
     start = TwoMassParameters(J_m=1.02 * true.J_m, J_l=0.97 * true.J_l, B_m=0.3 * true.B_m, B_l=3.0 * true.B_l,
                               K=1.02 * true.K, D=true.D)
-    seed = PemFit(parameters=start, epsilon_rad=0.0, coulomb_motor_nm=0.5 * friction, coulomb_load_nm=0.0,
-                  lag_s=0.0, terms=ModelTerms(coulomb_motor=True), residual=np.zeros(1), cost_nm=math.nan, names=(),
-                  covariance=np.zeros((0, 0)), n_effective=1.0, evaluations=0, converged=False, message="")
+    seed = _start(start, 0.0, coulomb_motor_nm=0.5 * friction, terms=ModelTerms(coulomb_motor=True))
     fit = kalman_fit(kp, seed, epsilon_max_rad=math.radians(2.0), threads=2, max_nfev=14)
     assert fit.converged, fit.message
     for name in ("J_m", "J_l", "K"):
@@ -431,9 +433,7 @@ def test_a_start_whose_damping_collapsed_to_zero_gives_prediction_errors_and_an_
     kp = kalman_problem(tau, r.motor_position, fs)
     start = replace(true, J_m=1.05 * true.J_m, K=1.1 * true.K, B_m=1e-16 * true.B_m)
     assert innovations(kp, start, math.radians(0.4), process_noise_nm=1e-3) is None
-    seed = PemFit(parameters=start, epsilon_rad=math.radians(0.38), coulomb_motor_nm=0.0, coulomb_load_nm=0.0,
-                  lag_s=0.0, terms=ModelTerms(), residual=np.zeros(1), cost_nm=math.nan, names=(),
-                  covariance=np.zeros((0, 0)), n_effective=1.0, evaluations=0, converged=False, message="")
+    seed = _start(start, math.radians(0.38))
     fit = kalman_fit(kp, seed, epsilon_max_rad=math.radians(2.0), threads=2, max_nfev=30)
     assert fit.innovations is not None and fit.parameters.B_m > 0.0
     q = assess(fit, torque_rms_nm=_rms(tau), sample_rate_hz=fs)

@@ -424,11 +424,11 @@ _ROBUST_CONTINUATION = True
 #: family's wrong basins needed (both measured in bench/results/family.md).
 _SHARPEN_ABOVE = 2e-2
 _SHARPEN_ROUNDS = 2
+#: ... and the levels the noise model is chosen among by likelihood at the first fit's optimum.
+_PROCESS_NOISE_GRID = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1)
 #: Further rounds of ``max_nfev`` iterations the final least squares gets when it stops at its evaluation
 #: limit (a round restarts the trust region too).
 _LIMIT_ROUNDS = 2
-#: ... and the levels the noise model is chosen among by likelihood at the first fit's optimum.
-_PROCESS_NOISE_GRID = (1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1)
 #: The Kalman fit's log-parameters are bounded to ×/÷ this around its start: its predictor stays finite
 #: far from the plant, and a start's damping can be off by more than ``_LOG_RANGE``.
 _KALMAN_LOG_RANGE = math.log(1e3)
