@@ -34,6 +34,7 @@ import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from enum import Enum
 from typing import Any
 
 import numpy as np
@@ -44,7 +45,7 @@ from .kalman import Innovations, KalmanProblem, innovations
 from .residual import Observer, ResidualProblem, motor_part, simulate_load
 from .twomass import TwoMassParameters
 
-__all__ = ["ModelTerms", "PemFit", "fit", "kalman_fit", "kalman_resettled", "significant_terms"]
+__all__ = ["Hedge", "ModelTerms", "PemFit", "fit", "kalman_fit", "kalman_resettled", "significant_terms"]
 
 PARAMETER_NAMES = ("J_m", "J_l", "B_m", "B_l", "K", "D")
 #: Decimated residual samples left out at each end: the zero-phase low-pass's edge transients.
@@ -456,17 +457,29 @@ _EPSILON_FACTORS = tuple(float(f) for f in np.geomspace(0.5, 2.0, 13))
 #: ε below which the continuation's estimate is taken as no gap at all [deg]: a fifth of the smallest
 #: backlash reported as one (``no_backlash_threshold_deg``'s default).
 _EPSILON_ZERO_DEG = 0.002
-#: The hedged fit (``kalman_fit(hedged=True)``): a random walk of the twist per sample, relative to ε, in
+#: The hedged fit (``kalman_fit(hedge=...)``): a random walk of the twist per sample, relative to ε, in
 #: every predictor; its sigma points take the modes the twist's uncertainty reaches, so the likelihood has a
 #: basin around the gap where the plain predictor's is a needle, and loses little at the truth (22:079:
 #: NLL per sample 1.80 → 1.88).
 _HEDGE_TWIST_NOISE = 1e-4
 #: ... and before it, Gaussian least squares at a disturbance of 1 % with the twist's random walk taken
-#: down over these multiples of the start's ε per sample, the first after ε's global grid.
+#: down over these multiples of the start's ε per sample, the first after ε's grid (:class:`Hedge`).
 _HEDGE_CONTINUATION = (1e-2, 1e-3, 1e-4)
 _HEDGE_NFEV = 40
 _HEDGE_GRID_POINTS = 40
 _HEDGE_GRID_FROM_DEG = 0.02
+
+
+class Hedge(Enum):
+    """The predictor :func:`kalman_fit` hedges the gap's contacts with, and where its ε starts."""
+
+    NONE = "none"
+    """The plain predictor: sharp at the optimum, a needle around the gap on impact-rich records."""
+    NEAR = "near"
+    """Sigma points across the twist, ε started at the best of ``_EPSILON_FACTORS`` × the start's: a start
+    a few % off, such as the torque-residual fit's (the plain fit moves from ±2 % only, this one from ±5–10 %)."""
+    GLOBAL = "global"
+    """Sigma points, ε started at the best of its global grid: a start whose ε basin is unknown."""
 
 
 class _KalmanObjective(_Objective):
@@ -677,7 +690,7 @@ def _epsilon_polish(obj: _KalmanObjective, z: NDArray[np.float64], top_deg: floa
 
 
 def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float, threads: int = 2,
-               max_nfev: int = 30, keep_all: bool = False, hedged: bool = False) -> PemFit:
+               max_nfev: int = 30, keep_all: bool = False, hedge: Hedge = Hedge.NONE) -> PemFit:
     """The prediction-error estimate with the Kalman predictor of the whole state, from ``start``
     (its parameters, ε, terms and their values).
 
@@ -693,13 +706,13 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
     fit (``terms`` and ``selection`` say which). Deterministic: fixed starts and grids, Jacobian columns
     computed one by one (threads only share them out): a smooth function of the record.
 
-    ``hedged``: every predictor with the twist's random walk ``_HEDGE_TWIST_NOISE`` (sigma points across
-    the gap), the continuation started by :func:`_hedge` (ε's global grid, the random walk taken down),
-    and the noise model chosen again where the sharpening and the polish end: for records whose plain
-    estimate needs a large disturbance (a start outside the needle the plain likelihood has there).
+    ``hedge`` (not :attr:`Hedge.NONE`): every predictor with the twist's random walk ``_HEDGE_TWIST_NOISE``
+    (sigma points across the gap), the continuation started by :func:`_hedge` (ε's grid, the random walk
+    taken down), and the noise model chosen again where the sharpening and the polish end: for a start
+    outside the needle the plain likelihood has around the gap.
     """
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        run = _KalmanFit(problem, start, epsilon_max_rad, pool, max_nfev, hedged)
+        run = _KalmanFit(problem, start, epsilon_max_rad, pool, max_nfev, hedge)
         obj, z, res = run.continuation(keep_all)
         obj, z, res = run.sharpened(obj, z, res)
         for _ in range(_LIMIT_ROUNDS):
@@ -728,7 +741,7 @@ def kalman_resettled(problem: KalmanProblem, estimate: PemFit, *, epsilon_max_ra
     prediction error)."""
     before = _likelihood(estimate)
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        run = _KalmanFit(problem, estimate, epsilon_max_rad, pool, max_nfev, hedged=False)
+        run = _KalmanFit(problem, estimate, epsilon_max_rad, pool, max_nfev, Hedge.NONE)
         if run.z[6] < _EPSILON_ZERO_DEG:
             run.z[6], run.free[6] = 0.0, False
         obj, z, res = run.settle(run.z)
@@ -754,10 +767,11 @@ class _KalmanFit:
     thread pool, and the predictor evaluations spent (``calls``)."""
 
     def __init__(self, problem: KalmanProblem, start: PemFit, epsilon_max_rad: float, pool: ThreadPoolExecutor,
-                 max_nfev: int, hedged: bool) -> None:
+                 max_nfev: int, hedge: Hedge) -> None:
         self.problem, self.terms, self.ref = problem, start.terms, problem.torque_rms_nm
-        self.pool, self.max_nfev, self.hedged = pool, max_nfev, hedged
-        self.twist = _HEDGE_TWIST_NOISE if hedged else 0.0
+        self.pool, self.max_nfev, self.hedge = pool, max_nfev, hedge
+        self.hedged = hedge is not Hedge.NONE
+        self.twist = _HEDGE_TWIST_NOISE if self.hedged else 0.0
         self.z, self.lo, self.hi, self.scale, self.steps = _coordinates(
             start, self.objective(_CONTINUATION[0]), epsilon_max_rad, self.ref)
         self.top_deg = float(self.hi[6])
@@ -786,7 +800,7 @@ class _KalmanFit:
         if self.hedged and z[6] > 0:
             z, spent = _hedge(lambda noise_rad: _KalmanObjective(
                 self.problem, self.terms, _CONTINUATION[0] * self.ref, _LOAD_SHARES[-1], twist_noise_rad=noise_rad),
-                z, self.top_deg, self.ls, self.pool)
+                z, self.top_deg, self.ls, self.pool, self.hedge)
             self.calls += spent
             profiled = True
         # a predictor that follows the record (wide basin, where ε is profiled), then one that trusts the
@@ -850,9 +864,10 @@ class _KalmanFit:
 
 
 def _hedge(objective: Callable[[float], _KalmanObjective], z: NDArray[np.float64], top_deg: float,
-           ls: Callable[..., tuple[NDArray[np.float64], Any]], pool: ThreadPoolExecutor) -> tuple[NDArray[np.float64], int]:
-    """The hedged fit's start: ε moved to the best of its global grid (``_HEDGE_GRID_POINTS``, geometric
-    from ``_HEDGE_GRID_FROM_DEG`` to ``top_deg``), then Gaussian least squares with the twist's random walk
+           ls: Callable[..., tuple[NDArray[np.float64], Any]], pool: ThreadPoolExecutor,
+           hedge: Hedge) -> tuple[NDArray[np.float64], int]:
+    """The hedged fit's start: ε moved to the best of its grid (:attr:`Hedge.NEAR`: ``_EPSILON_FACTORS`` × ε;
+    :attr:`Hedge.GLOBAL`: ``_HEDGE_GRID_POINTS``, geometric from ``_HEDGE_GRID_FROM_DEG`` to ``top_deg``), then Gaussian least squares with the twist's random walk
     ``objective(noise_rad)`` taken down over ``_HEDGE_CONTINUATION`` × ε per sample. With the random walk
     the likelihood has a basin across ε where the plain one is flat away from a needle at the truth
     (22:008, 22:079). Returns the coordinates and the evaluations spent."""
@@ -860,7 +875,8 @@ def _hedge(objective: Callable[[float], _KalmanObjective], z: NDArray[np.float64
     for i, level in enumerate(_HEDGE_CONTINUATION):
         obj = _armed(objective(level * math.radians(z[6])), z)
         if i == 0:
-            grid = np.geomspace(_HEDGE_GRID_FROM_DEG, top_deg, _HEDGE_GRID_POINTS)
+            grid = (np.minimum(z[6] * np.array(_EPSILON_FACTORS), top_deg) if hedge is Hedge.NEAR
+                    else np.geomspace(_HEDGE_GRID_FROM_DEG, top_deg, _HEDGE_GRID_POINTS))
 
             def cost(eps_deg: float) -> float:
                 return float(np.sum(obj(np.concatenate((z[:6], [eps_deg], z[7:])), remember=False) ** 2))

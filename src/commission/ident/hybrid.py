@@ -42,7 +42,7 @@ from threadpoolctl import threadpool_limits
 
 from ..exceptions import IdentificationError
 from ..recording import Recording
-from .estimator import ModelTerms, PemFit, fit, significant_terms
+from .estimator import Hedge, ModelTerms, PemFit, fit, significant_terms
 from .kalman import KalmanProblem
 from .options import IdentificationOptions, Method, options_from_mapping
 from .result import FitQuality, Identification, StageResult
@@ -644,11 +644,11 @@ def _seeded_by_delay(run: _Run, best: PemFit, d: int, other: PemFit,
 
 def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_Run, PemFit]:
     """An estimate that needs a disturbance the assessment flags, tried again: the hedged Kalman fit
-    (``kalman_fit(hedged=True)``) from the torque-residual fit's ``start`` on the ``first`` run finds the
-    gap's basin, the plain fit from there the estimate (the hedged predictor's own optimum can sit a few %
-    off ε behind narrow intervals: 22:095); the more likely of the two plain estimates is kept. On
-    impact-rich records the plain likelihood is a needle around the gap and a start outside it moves
-    nowhere (bench/results/family.md)."""
+    (:attr:`~commission.ident.estimator.Hedge.GLOBAL`, or ``NEAR`` without a load encoder) from the
+    torque-residual fit's ``start`` on the ``first`` run finds the gap's basin, the Kalman fit from there the
+    estimate (the hedged predictor's own optimum can sit a few % off ε behind narrow intervals: 22:095); the
+    more likely of the two estimates is kept. On impact-rich records the plain likelihood is a needle around
+    the gap and a start outside it moves nowhere (bench/results/family.md)."""
     hedged = _kalman_stage(first, start, hedged=True)
     other = _kalman_stage(first, hedged)
     spent = pem.evaluations + hedged.evaluations + other.evaluations
@@ -718,8 +718,8 @@ def _cogging_in(run: _Run, pem: PemFit, x: NDArray[np.float64], harmonics: tuple
 
 def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool = True) -> PemFit:
     """The estimate: prediction errors of the Kalman predictor of the whole state, from the torque-residual fit
-    (``hedged``: :func:`commission.ident.estimator.kalman_fit`'s), again with every configured term when it
-    needs a disturbance (``retry``)."""
+    (``hedged``: a hedged fit's, :func:`_hedge`), again with every configured term when it needs a disturbance
+    (``retry``)."""
     from .consistency import rebuilt_position_noise_rad
     from .estimator import kalman_fit, kalman_resettled
     from .kalman import kalman_problem
@@ -741,9 +741,15 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool
         eps_max = math.radians(2.0 * run.opt.epsilon_bounds_deg[1])
     run.epsilon_searched_rad = max(run.epsilon_searched_rad, eps_max)
     keep_all = run.opt.term_selection == "keep_all"
-    kw = dict(epsilon_max_rad=eps_max, threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations, keep_all=keep_all,
-              hedged=hedged)
-    pem = kalman_fit(kp, start, **kw)
+    kw = dict(epsilon_max_rad=eps_max, threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations, keep_all=keep_all)
+    hedge = _hedge(run, start, hedged)
+    pem = kalman_fit(kp, start, hedge=hedge, **kw)
+    if hedge is Hedge.NEAR:
+        # the hedged predictor's random walk of the twist grows with ε, so its likelihood flattens above the gap
+        # (24:000: ε bounded only to [0.386°, 2°]) and its optimum can sit off the plain one's: the plain fit
+        # from there is the estimate
+        plain = kalman_fit(kp, pem, **kw)
+        pem = replace(plain, evaluations=pem.evaluations + plain.evaluations)
     # the torque-residual fit's term selection can miss friction the Kalman fit then needs a large
     # disturbance for (22:038, 22:049): from this estimate again with every configured term, kept when the
     # likelihood gain pays for the parameters added (the BIC)
@@ -766,6 +772,16 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool
     added = len(candidates.names()) - len(pem.terms.names())
     best = other if _pays_for(kp, pem, other, added) else pem
     return replace(best, evaluations=pem.evaluations + other.evaluations)
+
+
+def _hedge(run: _Run, start: PemFit, hedged: bool) -> Hedge:
+    """The Kalman fit's :class:`~commission.ident.estimator.Hedge` from ``start``: without a load encoder every
+    fit with a gap is hedged near its start (there the plain likelihood is a needle around the gap that a start
+    a few % off does not leave; the hedged one recovers from ±5–10 %: bench/results/family.md); with one, only
+    where asked (``hedged``), over ε's global grid."""
+    if run.encoders is None and start.epsilon_rad > 0:
+        return Hedge.NEAR
+    return Hedge.GLOBAL if hedged else Hedge.NONE
 
 
 def _check_stage(run: _Run, cell: Any, pem: PemFit) -> tuple[FitQuality, list[dict[str, float]]]:
