@@ -129,6 +129,8 @@ def evaluate_member(m: Member, resolution_from_duration: bool = False) -> dict[s
     row["error"] = None
     row["stages_s"] = {s.name: round(s.seconds, 3) for s in result.stages}
     row["restarts"] = next((s.detail.get("starts") for s in result.stages if s.name == "restarts"), None)
+    row["delays"] = next((s.detail.get("tried") for s in result.stages if s.name == "delay"), None)
+    row["notes"] = list(result.notes)
     row["start_errors"] = start_errors(result, truth)
     row.update(_estimates(result))
     row.update(judge(truth, row["estimate"]))
