@@ -259,10 +259,11 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
         st.done("restarts", starts=restarts)
     from .assess import DISTURBANCE_MISFIT, INNOVATION_UNDETERMINED
 
-    # (a record the model cannot follow at all, its predictions 100× off, has no gap's basin to find)
+    # (a record the model cannot follow at all, its predictions 100× off, has no gap's basin to find; without a
+    # load encoder the Kalman stage was hedged already: bench/results/family.md)
     level = pem.innovations.rms if pem.innovations is not None else math.inf
-    if (start.epsilon_rad > 0.0 and pem.process_noise_nm >= DISTURBANCE_MISFIT * _torque_rms(run)
-            and level < INNOVATION_UNDETERMINED):
+    if (run.encoders is not None and start.epsilon_rad > 0.0
+            and pem.process_noise_nm >= DISTURBANCE_MISFIT * _torque_rms(run) and level < INNOVATION_UNDETERMINED):
         st.start("hedged", 0.8)
         run, pem = _hedged_stage(first, start, run, pem)
         st.done("hedged", process_noise_nm=pem.process_noise_nm, evaluations=pem.evaluations)
@@ -643,12 +644,12 @@ def _seeded_by_delay(run: _Run, best: PemFit, d: int, other: PemFit,
 
 
 def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_Run, PemFit]:
-    """An estimate that needs a disturbance the assessment flags, tried again: the hedged Kalman fit
-    (:attr:`~commission.ident.estimator.Hedge.GLOBAL`, or ``NEAR`` without a load encoder) from the
-    torque-residual fit's ``start`` on the ``first`` run finds the gap's basin, the Kalman fit from there the
-    estimate (the hedged predictor's own optimum can sit a few % off ε behind narrow intervals: 22:095); the
-    more likely of the two estimates is kept. On impact-rich records the plain likelihood is a needle around
-    the gap and a start outside it moves nowhere (bench/results/family.md)."""
+    """A load-encoder estimate that needs a disturbance the assessment flags, tried again: the hedged Kalman fit
+    (:attr:`~commission.ident.estimator.Hedge.GLOBAL`) from the torque-residual fit's ``start`` on the ``first``
+    run finds the gap's basin, the Kalman fit from there the estimate (the hedged predictor's own optimum can
+    sit a few % off ε behind narrow intervals: 22:095); the more likely of the two estimates is kept. On
+    impact-rich records the plain likelihood is a needle around the gap and a start outside it moves nowhere
+    (bench/results/family.md)."""
     hedged = _kalman_stage(first, start, hedged=True)
     other = _kalman_stage(first, hedged)
     spent = pem.evaluations + hedged.evaluations + other.evaluations
