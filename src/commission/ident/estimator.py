@@ -871,7 +871,8 @@ def _hedge(objective: Callable[[float], _KalmanObjective], z: NDArray[np.float64
     :attr:`Hedge.GLOBAL`: ``_HEDGE_GRID_POINTS``, geometric from ``_HEDGE_GRID_FROM_DEG`` to ``top_deg``),
     then Gaussian least squares with the twist's random walk ``objective(noise_rad)`` taken down over
     ``_HEDGE_CONTINUATION`` × ε per sample. With the random walk the likelihood has a basin across ε where
-    the plain one is flat away from a needle at the truth (22:008, 22:079). Returns the coordinates and the evaluations spent."""
+    the plain one is flat away from a needle at the truth (22:008, 22:079). Returns the coordinates and the
+    evaluations spent."""
     calls = 0
     for i, level in enumerate(_HEDGE_CONTINUATION):
         obj = _armed(objective(level * math.radians(z[6])), z)

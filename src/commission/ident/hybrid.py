@@ -259,10 +259,10 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
         st.done("restarts", starts=restarts)
     from .assess import DISTURBANCE_MISFIT, INNOVATION_UNDETERMINED
 
-    # (a record the model cannot follow at all, its predictions 100× off, has no gap's basin to find; without a
-    # load encoder the Kalman stage was hedged already: bench/results/family.md)
+    # (a record the model cannot follow at all, its predictions 100× off, has no gap's basin to find; a
+    # Kalman stage that was hedged already is not rescued by hedging again: bench/results/family.md)
     level = pem.innovations.rms if pem.innovations is not None else math.inf
-    if (run.encoders is not None and start.epsilon_rad > 0.0
+    if (start.epsilon_rad > 0.0 and _hedge(first, start, False) is Hedge.NONE
             and pem.process_noise_nm >= DISTURBANCE_MISFIT * _torque_rms(run) and level < INNOVATION_UNDETERMINED):
         st.start("hedged", 0.8)
         run, pem = _hedged_stage(first, start, run, pem)
