@@ -457,7 +457,7 @@ _LOAD_SHARES = (0.0, 0.3)
 _EPSILON_FACTORS = tuple(float(f) for f in np.geomspace(0.5, 2.0, 13))
 #: ε below which the continuation's estimate is taken as no gap at all [deg]: a fifth of the smallest
 #: backlash reported as one (``no_backlash_threshold_deg``'s default).
-_EPSILON_ZERO_DEG = 0.002
+EPSILON_ZERO_DEG = 0.002
 #: The hedged fit (``kalman_fit(hedge=...)``): a random walk of the twist per sample, relative to ε, in
 #: every predictor; its sigma points take the modes the twist's uncertainty reaches, so the likelihood has a
 #: basin around the gap where the plain predictor's is a needle, and loses little at the truth (22:079:
@@ -596,7 +596,7 @@ def _hold(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, free: NDArray
           keep_all: bool) -> None:
     """Hold at 0, in place, what the continuation's optimum does not support: a term within a standard
     error of 0 (a spurious term absorbs what a slightly wrong basin leaves and moves ε with it; every
-    term stays with ``keep_all``), and a gap below ``_EPSILON_ZERO_DEG`` (a free ε near 0 switches mode
+    term stays with ``keep_all``), and a gap below ``EPSILON_ZERO_DEG`` (a free ε near 0 switches mode
     at every zero crossing of the twist and the fit crawls there)."""
     cov = _held_covariance(res, free)
     selection = _term_selection(obj, z, res, cov, free, sample_rate_hz, _TERM_HOLD)
@@ -605,7 +605,7 @@ def _hold(obj: _KalmanObjective, z: NDArray[np.float64], res: Any, free: NDArray
         if not (sel["kept"] or keep_all):
             i = obj.names.index(_TERM_COORDINATE[term])
             z[i], free[i] = 0.0, False
-    if z[6] < _EPSILON_ZERO_DEG:
+    if z[6] < EPSILON_ZERO_DEG:
         z[6], free[6] = 0.0, False
 
 
@@ -743,7 +743,7 @@ def kalman_resettled(problem: KalmanProblem, estimate: PemFit, *, epsilon_max_ra
     before = _likelihood(estimate)
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
         run = _KalmanFit(problem, estimate, epsilon_max_rad, pool, max_nfev, Hedge.NONE)
-        if run.z[6] < _EPSILON_ZERO_DEG:
+        if run.z[6] < EPSILON_ZERO_DEG:
             run.z[6], run.free[6] = 0.0, False
         obj, z, res = run.settle(run.z)
         if not _nll(obj, z) < before:
