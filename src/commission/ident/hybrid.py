@@ -644,7 +644,8 @@ def _seeded_by_delay(run: _Run, best: PemFit, d: int, other: PemFit,
 
 
 def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_Run, PemFit]:
-    """A load-encoder estimate that needs a disturbance the assessment flags, tried again: the hedged Kalman fit
+    """An estimate whose Kalman stage was not hedged (a load encoder's, or one from a start with no gap) and that
+    needs a disturbance the assessment flags, tried again: the hedged Kalman fit
     (:attr:`~commission.ident.estimator.Hedge.GLOBAL`) from the torque-residual fit's ``start`` on the ``first``
     run finds the gap's basin, the Kalman fit from there the estimate (the hedged predictor's own optimum can
     sit a few % off ε behind narrow intervals: 22:095); the more likely of the two estimates is kept. On
@@ -781,7 +782,7 @@ def _hedge(run: _Run, start: PemFit, hedged: bool) -> Hedge:
     a few % off does not leave; the hedged one recovers from ±5–10 %: bench/results/family.md); with one, only
     where asked (``hedged``), over ε's global grid. A start with no gap to speak of (ε below
     :data:`~commission.ident.estimator.EPSILON_ZERO_DEG`) is not hedged: the random walk is relative to ε, so
-    that fit would be the plain one at twice the cost (22:019: 47 → 11 s)."""
+    that fit would be the plain one at 2–4× the cost (22:019: 47 → 11 s)."""
     if run.encoders is None and math.degrees(start.epsilon_rad) >= EPSILON_ZERO_DEG:
         return Hedge.NEAR
     return Hedge.GLOBAL if hedged else Hedge.NONE
