@@ -479,6 +479,9 @@ class Hedge(Enum):
     NEAR = "near"
     """Sigma points across the twist, ε started at the best of ``_EPSILON_FACTORS`` × the start's: a start
     a few % off, such as the torque-residual fit's (the plain fit moves from ±2 % only, this one from ±5–10 %)."""
+    START = "start"
+    """:attr:`NEAR`'s start only (ε's grid, the random walk taken down), the plain predictor from there: what
+    brings ε into the gap's basin, at half the cost of the whole hedged fit (bench/results/family.md)."""
     GLOBAL = "global"
     """Sigma points, ε started at the best of its global grid: a start whose ε basin is unknown."""
 
@@ -710,7 +713,8 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
     ``hedge`` (not :attr:`Hedge.NONE`): every predictor with the twist's random walk ``_HEDGE_TWIST_NOISE``
     (sigma points across the gap), the continuation started by :func:`_hedge` (ε's grid, the random walk
     taken down), and the noise model chosen again where the sharpening and the polish end: for a start
-    outside the needle the plain likelihood has around the gap.
+    outside the needle the plain likelihood has around the gap. :attr:`Hedge.START`: that start, then the
+    plain fit.
     """
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
         run = _KalmanFit(problem, start, epsilon_max_rad, pool, max_nfev, hedge)
@@ -804,6 +808,8 @@ class _KalmanFit:
                 z, self.top_deg, self.ls, self.pool, self.hedge)
             self.calls += spent
             profiled = True
+            if self.hedge is Hedge.START:
+                self.hedged, self.twist, profiled = False, 0.0, False
         # a predictor that follows the record (wide basin, where ε is profiled), then one that trusts the
         # model (sharp minimum; a profile there could jump to a neighbouring valley)
         for level in _CONTINUATION:
@@ -877,7 +883,7 @@ def _hedge(objective: Callable[[float], _KalmanObjective], z: NDArray[np.float64
     for i, level in enumerate(_HEDGE_CONTINUATION):
         obj = _armed(objective(level * math.radians(z[6])), z)
         if i == 0:
-            grid = (np.minimum(z[6] * np.array(_EPSILON_FACTORS), top_deg) if hedge is Hedge.NEAR
+            grid = (np.minimum(z[6] * np.array(_EPSILON_FACTORS), top_deg) if hedge is not Hedge.GLOBAL
                     else np.geomspace(_HEDGE_GRID_FROM_DEG, top_deg, _HEDGE_GRID_POINTS))
 
             def cost(eps_deg: float) -> float:

@@ -745,13 +745,15 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool
     keep_all = run.opt.term_selection == "keep_all"
     kw = dict(epsilon_max_rad=eps_max, threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations, keep_all=keep_all)
     hedge = _hedge(run, start, hedged)
-    pem = kalman_fit(kp, start, hedge=hedge, **kw)
-    if hedge is Hedge.NEAR:
-        # the hedged predictor's random walk of the twist grows with ε, so its likelihood flattens above the gap
-        # (24:000: ε bounded only to [0.386°, 2°]) and its optimum can sit off the plain one's: the plain fit
-        # from there is the estimate
-        plain = kalman_fit(kp, pem, **kw)
-        pem = replace(plain, evaluations=pem.evaluations + plain.evaluations)
+    pem = kalman_fit(kp, start, hedge=Hedge.START if hedge is Hedge.NEAR else hedge, **kw)
+    if hedge is Hedge.NEAR and _needs_disturbance(run, pem):
+        # the hedged fit's start alone brings most records into the gap's basin; where the estimate from
+        # there needs a disturbance, the whole hedged fit, then the plain one from its optimum (the hedged
+        # likelihood flattens above the gap: 24:000), the likelier kept (22:015, 23:021 need it)
+        full = kalman_fit(kp, start, hedge=hedge, **kw)
+        plain = kalman_fit(kp, full, **kw)
+        spent = pem.evaluations + full.evaluations + plain.evaluations
+        pem = replace(plain if _likelihood_cost(plain) < _likelihood_cost(pem) else pem, evaluations=spent)
     # the torque-residual fit's term selection can miss friction the Kalman fit then needs a large
     # disturbance for (22:038, 22:049): from this estimate again with every configured term, kept when the
     # likelihood gain pays for the parameters added (the BIC)
