@@ -260,9 +260,10 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
     from .assess import DISTURBANCE_MISFIT, INNOVATION_UNDETERMINED
 
     # (a record the model cannot follow at all, its predictions 100× off, has no gap's basin to find; a
-    # Kalman stage that was hedged already is not rescued by hedging again: bench/results/family.md)
+    # motor-side record was rescued by it on none of the 96 run's members it ran on, whether its Kalman
+    # stage was hedged (17) or its start had no gap (6): bench/results/family.md)
     level = pem.innovations.rms if pem.innovations is not None else math.inf
-    if (start.epsilon_rad > 0.0 and _hedge(first, start, False) is Hedge.NONE
+    if (first.encoders is not None and start.epsilon_rad > 0.0
             and pem.process_noise_nm >= DISTURBANCE_MISFIT * _torque_rms(run) and level < INNOVATION_UNDETERMINED):
         st.start("hedged", 0.8)
         run, pem = _hedged_stage(first, start, run, pem)
@@ -644,8 +645,8 @@ def _seeded_by_delay(run: _Run, best: PemFit, d: int, other: PemFit,
 
 
 def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_Run, PemFit]:
-    """An estimate whose Kalman stage was not hedged (a load encoder's, or one from a start with no gap) and that
-    needs a disturbance the assessment flags, tried again: the hedged Kalman fit
+    """A load-encoder estimate (whose Kalman stage is not hedged) that needs a disturbance the assessment
+    flags, tried again: the hedged Kalman fit
     (:attr:`~commission.ident.estimator.Hedge.GLOBAL`) from the torque-residual fit's ``start`` on the ``first``
     run finds the gap's basin, the Kalman fit from there the estimate (the hedged predictor's own optimum can
     sit a few % off ε behind narrow intervals: 22:095); the more likely of the two estimates is kept. On
