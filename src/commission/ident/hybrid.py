@@ -578,6 +578,9 @@ def _delay_stage(run: _Run, pem: PemFit) -> tuple[PemFit, list[dict[str, float]]
     estimate without it needed a torque disturbance of 11 % of RMS τ_ref (flagged, ε 0.374° for 0.4°);
     with it 0.01 % (the drive's own noise), the loop's time constant exact, ε 0.4000°. The estimate of the
     first delay that does not pay for itself seeds one more fit at the kept delay (:func:`_seeded_by_delay`).
+    Each trial is the plain fit from the estimate, which the Kalman stage already brought into the gap's basin
+    (hedged trials gave the same verdict on all 27 members of the 96 run the stage ran on, in 3.6× the time:
+    bench/results/family.md).
 
     With no lag to shorten, the torque a sample earlier (delay −1): a log that puts each torque beside the
     next sample's position, whose motion leads its torque; half a sample first (an encoder latched mid-cycle,
@@ -590,7 +593,8 @@ def _delay_stage(run: _Run, pem: PemFit) -> tuple[PemFit, list[dict[str, float]]
     for d in _delay_candidates(run, pem):
         run.delay_samples = d
         try:  # (the terms as the first estimate chose them, every configured one tried there)
-            other = _kalman_stage(run, replace(best, lag_s=max(pem.lag_s - max(d, 0) / run.fs, 0.0)), retry=False)
+            other = _kalman_stage(run, replace(best, lag_s=max(pem.lag_s - max(d, 0) / run.fs, 0.0)),
+                                  retry=False, plain=True)
         except (IdentificationError, ValueError, np.linalg.LinAlgError) as err:
             tried.append({"delay_samples": d, "negative_log_likelihood": math.inf, "failed": str(err)})
             break
@@ -631,7 +635,7 @@ def _seeded_by_delay(run: _Run, best: PemFit, d: int, other: PemFit,
     at = run.delay_samples
     start = replace(other, lag_s=other.lag_s + (d - at) / run.fs)
     try:
-        seeded = _kalman_stage(run, start, retry=False)
+        seeded = _kalman_stage(run, start, retry=False, plain=True)
     except (IdentificationError, ValueError, np.linalg.LinAlgError) as err:
         tried.append({"delay_samples": at, "seeded_by_delay": d, "negative_log_likelihood": math.inf, "failed": str(err)})
         return best, 0
@@ -719,10 +723,11 @@ def _cogging_in(run: _Run, pem: PemFit, x: NDArray[np.float64], harmonics: tuple
                         decimation=run.problem.decimation, harmonics=harmonics)
 
 
-def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool = True) -> PemFit:
+def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool = True,
+                  plain: bool = False) -> PemFit:
     """The estimate: prediction errors of the Kalman predictor of the whole state, from the torque-residual fit
-    (``hedged``: a hedged fit's, :func:`_hedge`), again with every configured term when it needs a disturbance
-    (``retry``)."""
+    (``hedged``: a hedged fit's, :func:`_hedge`; ``plain``: never hedged, for a start already in the gap's
+    basin), again with every configured term when it needs a disturbance (``retry``)."""
     from .consistency import rebuilt_position_noise_rad
     from .estimator import kalman_fit, kalman_resettled
     from .kalman import kalman_problem
@@ -745,7 +750,7 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool
     run.epsilon_searched_rad = max(run.epsilon_searched_rad, eps_max)
     keep_all = run.opt.term_selection == "keep_all"
     kw = dict(epsilon_max_rad=eps_max, threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations, keep_all=keep_all)
-    hedge = _hedge(run, start, hedged)
+    hedge = Hedge.NONE if plain else _hedge(run, start, hedged)
     pem = kalman_fit(kp, start, hedge=Hedge.START if hedge is Hedge.NEAR else hedge, **kw)
     if hedge is Hedge.NEAR and _needs_disturbance(run, pem):
         # the hedged fit's start alone brings most records into the gap's basin; where the estimate from
