@@ -172,6 +172,24 @@ def test_the_fit_started_by_the_hedged_predictor_ends_at_the_plant() -> None:
     assert fit.process_noise_nm < 0.01 * kp.torque_rms_nm  # the gap's basin: no disturbance needed to follow it
 
 
+def test_a_hedged_fit_takes_the_hedged_start_another_fit_computed() -> None:
+    """The whole hedged fit after a :attr:`Hedge.START` fit from the same start, sharing ``memo``, is the
+    hedged fit computed alone (the hedged start is a deterministic function of the problem and the start),
+    for fewer predictor evaluations."""
+    fs, eps_deg = 4000.0, 1.0
+    tau, r = _record(fs, 2.0, eps_deg=eps_deg, encoder_bits_motor=22)
+    kp = kalman_problem(tau, r.motor_position, fs)
+    seed = _start(replace(REFERENCE_PLANT, K=1.03 * REFERENCE_PLANT.K), math.radians(0.8 * eps_deg))
+    kw = dict(epsilon_max_rad=math.radians(2.0 * eps_deg), threads=2, max_nfev=30)
+    alone = kalman_fit(kp, seed, hedge=Hedge.NEAR, **kw)
+    memo: dict[str, object] = {}
+    kalman_fit(kp, seed, hedge=Hedge.START, memo=memo, **kw)
+    shared = kalman_fit(kp, seed, hedge=Hedge.NEAR, memo=memo, **kw)
+    assert shared.epsilon_rad == alone.epsilon_rad
+    assert shared.parameters == alone.parameters
+    assert shared.evaluations < alone.evaluations
+
+
 def test_a_load_encoder_adds_its_own_channel_and_a_lost_sample_is_no_evidence() -> None:
     fs = 4000.0
     tau, r = _record(fs, 3.0, encoder_bits_motor=22, encoder_bits_load=18)

@@ -694,7 +694,8 @@ def _epsilon_polish(obj: _KalmanObjective, z: NDArray[np.float64], top_deg: floa
 
 
 def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float, threads: int = 2,
-               max_nfev: int = 30, keep_all: bool = False, hedge: Hedge = Hedge.NONE) -> PemFit:
+               max_nfev: int = 30, keep_all: bool = False, hedge: Hedge = Hedge.NONE,
+               memo: dict[str, Any] | None = None) -> PemFit:
     """The prediction-error estimate with the Kalman predictor of the whole state, from ``start``
     (its parameters, ε, terms and their values).
 
@@ -714,11 +715,13 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
     (sigma points across the gap), the continuation started by :func:`_hedge` (ε's grid, the random walk
     taken down), and the noise model chosen again where the sharpening and the polish end: for a start
     outside the needle the plain likelihood has around the gap. :attr:`Hedge.START`: that start, then the
-    plain fit.
+    plain fit. ``memo``: a dict shared by fits of the same ``problem``: the hedged start one of them computed
+    is taken by the next from the same coordinates (a :attr:`Hedge.START` fit, then the :attr:`Hedge.NEAR`
+    fit from the same start, repeats none of it).
     """
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
         run = _KalmanFit(problem, start, epsilon_max_rad, pool, max_nfev, hedge)
-        obj, z, res = run.continuation(keep_all)
+        obj, z, res = run.continuation(keep_all, memo)
         obj, z, res = run.sharpened(obj, z, res)
         for _ in range(_LIMIT_ROUNDS):
             if res.status > 0:
@@ -798,15 +801,23 @@ class _KalmanFit:
         o = _armed(self.objective(level, share), z0)
         return (o, *self.ls(o, z0, self.max_nfev))
 
-    def continuation(self, keep_all: bool) -> tuple[_KalmanObjective, NDArray[np.float64], Any]:
-        """Step 1 (the hedged fit started by :func:`_hedge`), the terms within a standard error of 0 held,
-        and the noise model settled where it ends."""
+    def continuation(self, keep_all: bool,
+                     memo: dict[str, Any] | None = None) -> tuple[_KalmanObjective, NDArray[np.float64], Any]:
+        """Step 1 (the hedged fit started by :func:`_hedge`, or taken from ``memo``), the terms within a
+        standard error of 0 held, and the noise model settled where it ends."""
         z, profiled = self.z, False
         if self.hedged and z[6] > 0:
-            z, spent = _hedge(lambda noise_rad: _KalmanObjective(
-                self.problem, self.terms, _CONTINUATION[0] * self.ref, _LOAD_SHARES[-1], twist_noise_rad=noise_rad),
-                z, self.top_deg, self.ls, self.pool, self.hedge)
-            self.calls += spent
+            # the hedged start is a deterministic function of these: an equal key is the same start
+            key = (z.tobytes(), self.lo.tobytes(), self.hi.tobytes(), self.terms, self.hedge is Hedge.GLOBAL)
+            if memo is not None and memo.get("key") == key:
+                z = memo["z"].copy()
+            else:
+                z, spent = _hedge(lambda noise_rad: _KalmanObjective(
+                    self.problem, self.terms, _CONTINUATION[0] * self.ref, _LOAD_SHARES[-1],
+                    twist_noise_rad=noise_rad), z, self.top_deg, self.ls, self.pool, self.hedge)
+                self.calls += spent
+                if memo is not None:
+                    memo.update(key=key, z=z.copy())
             profiled = True
             if self.hedge is Hedge.START:
                 self.hedged, self.twist, profiled = False, 0.0, False

@@ -751,12 +751,14 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool
     keep_all = run.opt.term_selection == "keep_all"
     kw = dict(epsilon_max_rad=eps_max, threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations, keep_all=keep_all)
     hedge = Hedge.NONE if plain else _hedge(run, start, hedged)
-    pem = kalman_fit(kp, start, hedge=Hedge.START if hedge is Hedge.NEAR else hedge, **kw)
+    memo: dict[str, Any] = {}
+    pem = kalman_fit(kp, start, hedge=Hedge.START if hedge is Hedge.NEAR else hedge, memo=memo, **kw)
     if hedge is Hedge.NEAR and _needs_disturbance(run, pem):
         # the hedged fit's start alone brings most records into the gap's basin; where the estimate from
-        # there needs a disturbance, the whole hedged fit, then the plain one from its optimum (the hedged
-        # likelihood flattens above the gap: 24:000), the likelier kept (22:015, 23:021 need it)
-        full = kalman_fit(kp, start, hedge=hedge, **kw)
+        # there needs a disturbance, the whole hedged fit (from the same hedged start: ``memo``), then the
+        # plain one from its optimum (the hedged likelihood flattens above the gap: 24:000), the likelier
+        # kept (22:015, 23:021 need it)
+        full = kalman_fit(kp, start, hedge=hedge, memo=memo, **kw)
         plain = kalman_fit(kp, full, **kw)
         spent = pem.evaluations + full.evaluations + plain.evaluations
         pem = replace(plain if _likelihood_cost(plain) < _likelihood_cost(pem) else pem, evaluations=spent)
