@@ -594,7 +594,7 @@ def _delay_stage(run: _Run, pem: PemFit) -> tuple[PemFit, list[dict[str, float]]
         run.delay_samples = d
         try:  # (the terms as the first estimate chose them, every configured one tried there)
             other = _kalman_stage(run, replace(best, lag_s=max(pem.lag_s - max(d, 0) / run.fs, 0.0)),
-                                  retry=False, plain=True)
+                                  retry=False, hedge=Hedge.NONE)
         except (IdentificationError, ValueError, np.linalg.LinAlgError) as err:
             tried.append({"delay_samples": d, "negative_log_likelihood": math.inf, "failed": str(err)})
             break
@@ -635,7 +635,7 @@ def _seeded_by_delay(run: _Run, best: PemFit, d: int, other: PemFit,
     at = run.delay_samples
     start = replace(other, lag_s=other.lag_s + (d - at) / run.fs)
     try:
-        seeded = _kalman_stage(run, start, retry=False, plain=True)
+        seeded = _kalman_stage(run, start, retry=False, hedge=Hedge.NONE)
     except (IdentificationError, ValueError, np.linalg.LinAlgError) as err:
         tried.append({"delay_samples": at, "seeded_by_delay": d, "negative_log_likelihood": math.inf, "failed": str(err)})
         return best, 0
@@ -656,7 +656,7 @@ def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_
     sit a few % off ε behind narrow intervals: 22:095); the more likely of the two estimates is kept. On
     impact-rich records the plain likelihood is a needle around the gap and a start outside it moves nowhere
     (bench/results/family.md)."""
-    hedged = _kalman_stage(first, start, hedged=True)
+    hedged = _kalman_stage(first, start, hedge=Hedge.GLOBAL)
     other = _kalman_stage(first, hedged)
     spent = pem.evaluations + hedged.evaluations + other.evaluations
     if not _likelihood_cost(other) < _likelihood_cost(pem):
@@ -723,11 +723,11 @@ def _cogging_in(run: _Run, pem: PemFit, x: NDArray[np.float64], harmonics: tuple
                         decimation=run.problem.decimation, harmonics=harmonics)
 
 
-def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool = True,
-                  plain: bool = False) -> PemFit:
+def _kalman_stage(run: _Run, start: PemFit, *, hedge: Hedge | None = None, retry: bool = True) -> PemFit:
     """The estimate: prediction errors of the Kalman predictor of the whole state, from the torque-residual fit
-    (``hedged``: a hedged fit's, :func:`_hedge`; ``plain``: never hedged, for a start already in the gap's
-    basin), again with every configured term when it needs a disturbance (``retry``)."""
+    (``hedge``: how the fit hedges the gap's contacts, by default as :func:`_hedge` chooses from ``start``;
+    :attr:`~commission.ident.estimator.Hedge.NONE` for a start already in the gap's basin), again with every
+    configured term when it needs a disturbance (``retry``)."""
     from .consistency import rebuilt_position_noise_rad
     from .estimator import kalman_fit, kalman_resettled
     from .kalman import kalman_problem
@@ -750,7 +750,8 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool
     run.epsilon_searched_rad = max(run.epsilon_searched_rad, eps_max)
     keep_all = run.opt.term_selection == "keep_all"
     kw = dict(epsilon_max_rad=eps_max, threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations, keep_all=keep_all)
-    hedge = Hedge.NONE if plain else _hedge(run, start, hedged)
+    if hedge is None:
+        hedge = _hedge(run, start)
     memo: dict[str, Any] = {}
     pem = kalman_fit(kp, start, hedge=Hedge.START if hedge is Hedge.NEAR else hedge, memo=memo, **kw)
     if hedge is Hedge.NEAR and _needs_disturbance(run, pem):
@@ -786,16 +787,16 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedged: bool = False, retry: bool
     return replace(best, evaluations=pem.evaluations + other.evaluations)
 
 
-def _hedge(run: _Run, start: PemFit, hedged: bool) -> Hedge:
+def _hedge(run: _Run, start: PemFit) -> Hedge:
     """The Kalman fit's :class:`~commission.ident.estimator.Hedge` from ``start``: without a load encoder every
     fit with a gap is hedged near its start (there the plain likelihood is a needle around the gap that a start
-    a few % off does not leave; the hedged one recovers from ±5–10 %: bench/results/family.md); with one, only
-    where asked (``hedged``), over ε's global grid. A start with no gap to speak of (ε below
-    :data:`~commission.ident.estimator.EPSILON_ZERO_DEG`) is not hedged: the random walk is relative to ε, so
-    that fit would be the plain one at 2–4× the cost (22:019: 47 → 11 s)."""
+    a few % off does not leave; the hedged one recovers from ±5–10 %: bench/results/family.md); with one, none
+    (:func:`_hedged_stage` hedges over ε's global grid where the estimate needs it). A start with no gap to
+    speak of (ε below :data:`~commission.ident.estimator.EPSILON_ZERO_DEG`) is not hedged: the random walk is
+    relative to ε, so that fit would be the plain one at 2–4× the cost (22:019: 47 → 11 s)."""
     if run.encoders is None and math.degrees(start.epsilon_rad) >= EPSILON_ZERO_DEG:
         return Hedge.NEAR
-    return Hedge.GLOBAL if hedged else Hedge.NONE
+    return Hedge.NONE
 
 
 def _check_stage(run: _Run, cell: Any, pem: PemFit) -> tuple[FitQuality, list[dict[str, float]]]:
