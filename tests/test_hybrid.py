@@ -330,3 +330,21 @@ def test_the_last_start_reads_a_two_mass_plant_off_its_apparent_inertia(ratio: f
     # a response with no inertia in it (a pure damper) gives no start
     flat = np.full(f.size, 2.0 + 0j)
     assert inertia_start(FRD(f, flat, np.ones(f.size), np.ones(f.size, complex), flat, 8000.0, 0.1), 2000.0) is None
+
+
+def test_a_start_the_gap_softened_is_made_stiffer_until_the_record_is_likeliest() -> None:
+    # family member 22:022: a 0.85° gap on a heavy load (J_l/J_m 3.1), Coulomb friction of 5 % of the peak
+    # torque, velocity only. The gap softens the spring the frequency response sees: the start's stiffness
+    # is half the plant's, outside the Kalman fit's basin; from a stiffer start the plant is found
+    from sim_drive.family import DEFAULT_SEED, member
+
+    m = member(DEFAULT_SEED, 22)
+    res = identify(m.simulate())
+    start_k = res.stage("start").detail["parameters"]["K"]
+    assert start_k < 0.7 * m.two_mass.K
+    assert res.fit is not None and not res.fit.approximate, res.fit.reasons if res.fit else None
+    assert res.epsilon_deg == pytest.approx(m.epsilon_deg, rel=0.02)
+    lo, hi = (math.degrees(x) for x in res.epsilon_interval_rad)
+    assert lo <= m.epsilon_deg <= hi
+    for p in ("J_m", "J_l", "K"):
+        assert getattr(res.parameters, p) == pytest.approx(getattr(m.two_mass, p), rel=0.02), p
