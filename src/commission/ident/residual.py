@@ -656,12 +656,6 @@ class ResidualProblem:
         """Samples of the recording (N)."""
         return int(self.spline.shape[0] + 1)
 
-    @property
-    def n_residual(self) -> int:
-        """Length of the decimated residual vector (motor block + load block)."""
-        n = int(self.acceleration_f.shape[0])
-        return 2 * n if self.load_position is not None else n
-
     def lagged_torque_f(self, lag_s: float) -> NDArray[np.float64]:
         """Low-passed, decimated motor torque behind a first-order current loop of time
         constant ``lag_s`` [s] (``torque_f`` for 0), see :func:`lagged_torque`."""
