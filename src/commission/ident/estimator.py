@@ -391,6 +391,7 @@ def _within_a_step(J: NDArray[np.float64], r: NDArray[np.float64], cov: NDArray[
 
 
 _TERM_COORDINATE = {"coulomb_motor": "F_cm", "coulomb_load": "F_cl", "current_loop": "T_c_us"}
+_TERM_FIELD = {"coulomb_motor": "coulomb_motor_nm", "coulomb_load": "coulomb_load_nm", "current_loop": "lag_s"}
 #: The dampings' coordinates (B_m, B_l, D): logarithms, held where they stand when not determined.
 _DAMPINGS = (2, 3, 5)
 
@@ -763,6 +764,30 @@ def kalman_resettled(problem: KalmanProblem, estimate: PemFit, *, epsilon_max_ra
     if not _likelihood(again) < before:  # the term selection dropped what the likelihood needed
         return replace(estimate, evaluations=estimate.evaluations + run.calls)
     return replace(again, evaluations=estimate.evaluations + again.evaluations)
+
+
+def omitted_term_scores(problem: KalmanProblem, estimate: PemFit, candidates: ModelTerms, *,
+                        epsilon_max_rad: float) -> dict[str, float]:
+    """The score (Lagrange multiplier) statistic at a :func:`kalman_fit` ``estimate`` of each of ``candidates``
+    it leaves out, the term at 0 and its noise model held: the drop in −2·ln L a Gauss–Newton step on that
+    term alone would give (0 where the step points below the term's bound of 0). One predictor pass per term
+    and one at the estimate; the other coordinates do not move, so a term they stand in for scores less than
+    it would gain in a fit."""
+    out: dict[str, float] = {}
+    for name in (n for n in candidates.names() if not getattr(estimate.terms, n)):
+        terms = replace(estimate.terms, **{name: True})
+        at = replace(estimate, terms=terms, **{_TERM_FIELD[name]: 0.0})
+        obj = _KalmanObjective(problem, terms, estimate.process_noise_nm, estimate.load_share)
+        z, _, _, _, steps = _coordinates(at, obj, epsilon_max_rad, problem.torque_rms_nm)
+        i = obj.names.index(_TERM_COORDINATE[name])
+        r0 = obj(z, remember=False)
+        dz = z.copy()
+        dz[i] += steps[i]
+        column = (obj(dz, remember=False) - r0) / steps[i]
+        g, h, s = float(column @ r0), float(column @ column), float(r0 @ r0)
+        # the sum of squares is the likelihood's generalized variance: −2·ln L = N·ln(S/N) + const
+        out[name] = r0.size * -math.log1p(-g * g / (h * s)) if g < 0.0 and h > 0.0 and s > 0.0 else 0.0
+    return out
 
 
 def _likelihood(estimate: PemFit) -> float:
