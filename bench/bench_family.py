@@ -2,8 +2,8 @@
 
 Every member is simulated, then identified by ``commission.ident.hybrid.identify`` in this
 process, one after the other (time.perf_counter around ``identify`` only; the simulation is
-not counted). The identifier gets default options except its band and residual low-pass,
-which follow the member's chirp (:func:`options_for`). Printed: the share within tolerance
+not counted). The identifier gets its default options, as a user runs it: it takes the band,
+the resolution and the residual's low-pass from the record (:func:`options_for`). Printed: the share within tolerance
 (ε within ±0.01° or 2 % of ε, whichever is larger; J_m, J_l, K ±2 %; resonance and
 anti-resonance ±0.5 %), flagged approximate (result.json ``fit.approximate``), silently
 wrong (not flagged, outside tolerance), no result at all (by reason), the coverage of the
