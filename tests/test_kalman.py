@@ -17,7 +17,7 @@ from scipy.interpolate import CubicSpline
 
 from commission.config import ExcitationConfig
 from commission.excitation import chirp
-from commission.ident.estimator import Hedge, ModelTerms, PemFit, kalman_fit, kalman_resettled
+from commission.ident.estimator import Hedge, ModelTerms, PemFit, kalman_fit, kalman_resettled, omitted_term_scores
 from commission.ident.kalman import innovations, kalman_problem, position_step_rad
 from commission.ident.twomass import REFERENCE_PLANT, TwoMassParameters, modes
 from sim_drive.plant import Plant, PlantParameters
@@ -248,6 +248,31 @@ def test_friction_and_a_current_loop_are_predicted() -> None:
     assert full is not None and without is not None
     assert _rms(full.normalized) < 1.5
     assert _rms(without.normalized) > 3 * _rms(full.normalized)
+
+
+@pytest.mark.parametrize("coulomb_motor_nm", [0.0, 5e-4])
+def test_a_term_an_estimate_leaves_out_scores_above_its_price_only_where_the_record_has_it(
+        coulomb_motor_nm: float) -> None:
+    """At the true plant without friction terms, the score of motor friction is above the BIC's price of a
+    parameter (ln N) exactly where adding the true friction makes the record likelier by more than that;
+    the load's friction, absent from the plant, and the current loop, ideal, score below it without friction."""
+    fs = 4000.0
+    tau, r = _record(fs, 4.0, coulomb_motor_nm=coulomb_motor_nm, encoder_bits_motor=20, torque_noise_nm=2e-4, seed=3)
+    kp = kalman_problem(tau, r.motor_position, fs)
+    eps, q = math.radians(0.4), 2e-4
+    inn = innovations(kp, REFERENCE_PLANT, eps, process_noise_nm=q)
+    assert inn is not None
+    n = inn.normalized.size
+    estimate = replace(_start(REFERENCE_PLANT, eps), process_noise_nm=q, load_share=0.3, innovations=inn,
+                       n_effective=float(n))
+    scores = omitted_term_scores(kp, estimate, ModelTerms(coulomb_motor=True, coulomb_load=True, current_loop=True),
+                                 epsilon_max_rad=math.radians(2.0))
+    truth = innovations(kp, REFERENCE_PLANT, eps, coulomb_motor_nm=coulomb_motor_nm, process_noise_nm=q)
+    assert truth is not None
+    gain = 2.0 * n * (inn.negative_log_likelihood() - truth.negative_log_likelihood())
+    assert (scores["coulomb_motor"] > math.log(n)) == (gain > math.log(n))
+    if coulomb_motor_nm == 0.0:
+        assert max(scores.values()) < math.log(n), scores
 
 
 def test_the_estimator_recovers_a_plant_from_a_start_ten_percent_off() -> None:
