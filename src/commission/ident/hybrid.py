@@ -727,7 +727,7 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedge: Hedge | None = None, retry
     """The estimate: prediction errors of the Kalman predictor of the whole state, from the torque-residual fit
     (``hedge``: how the fit hedges the gap's contacts, by default as :func:`_hedge` chooses from ``start``;
     :attr:`~commission.ident.estimator.Hedge.NONE` for a start already in the gap's basin), again with every
-    configured term when it needs a disturbance (``retry``)."""
+    configured term when it needs a disturbance or a term it leaves out scores above its price (``retry``)."""
     from .consistency import rebuilt_position_noise_rad
     from .estimator import kalman_fit, kalman_resettled
     from .kalman import kalman_problem
