@@ -770,21 +770,26 @@ def omitted_term_scores(problem: KalmanProblem, estimate: PemFit, candidates: Mo
                         epsilon_max_rad: float) -> dict[str, float]:
     """The score (Lagrange multiplier) statistic at a :func:`kalman_fit` ``estimate`` of each of ``candidates``
     it leaves out, the term at 0 and its noise model held: the drop in −2·ln L a Gauss–Newton step on that
-    term alone would give (0 where the step points below the term's bound of 0). One predictor pass per term
-    and one at the estimate; the other coordinates do not move, so a term they stand in for scores less than
-    it would gain in a fit."""
+    term alone would give (0 where the step points below the term's bound of 0). One predictor pass at the
+    estimate and one per term; the other coordinates do not move, so a term they stand in for scores less
+    than it would gain in a fit."""
+    omitted = [n for n in candidates.names() if not getattr(estimate.terms, n)]
+    if not omitted:
+        return {}
+    # every omitted term switched on at 0: the same predictor as the estimate's, with a coordinate for each
+    terms = replace(estimate.terms, **{n: True for n in omitted})
+    at = replace(estimate, terms=terms, **{_TERM_FIELD[n]: 0.0 for n in omitted})
+    obj = _KalmanObjective(problem, terms, estimate.process_noise_nm, estimate.load_share)
+    z, _, _, _, steps = _coordinates(at, obj, epsilon_max_rad, problem.torque_rms_nm)
+    r0 = obj(z, remember=False)
+    s = float(r0 @ r0)
     out: dict[str, float] = {}
-    for name in (n for n in candidates.names() if not getattr(estimate.terms, n)):
-        terms = replace(estimate.terms, **{name: True})
-        at = replace(estimate, terms=terms, **{_TERM_FIELD[name]: 0.0})
-        obj = _KalmanObjective(problem, terms, estimate.process_noise_nm, estimate.load_share)
-        z, _, _, _, steps = _coordinates(at, obj, epsilon_max_rad, problem.torque_rms_nm)
+    for name in omitted:
         i = obj.names.index(_TERM_COORDINATE[name])
-        r0 = obj(z, remember=False)
         dz = z.copy()
         dz[i] += steps[i]
         column = (obj(dz, remember=False) - r0) / steps[i]
-        g, h, s = float(column @ r0), float(column @ column), float(r0 @ r0)
+        g, h = float(column @ r0), float(column @ column)
         # the sum of squares is the likelihood's generalized variance: −2·ln L = N·ln(S/N) + const
         out[name] = r0.size * -math.log1p(-g * g / (h * s)) if g < 0.0 and h > 0.0 and s > 0.0 else 0.0
     return out
