@@ -505,6 +505,36 @@ def test_a_start_whose_damping_collapsed_to_zero_gives_prediction_errors_and_an_
     assert q.approximate and not q.determined and q.model_error and "cannot be evaluated" in q.reasons[0]
 
 
+def test_an_estimate_whose_resonance_the_record_does_not_show_is_flagged_and_claims_no_stiffness() -> None:
+    """The assessment flags an estimate (here the true plant) whose resonance lies beyond where the record's
+    torque stops, or beyond Nyquist, and leaves its intervals unbounded; with a band past the resonance the
+    same estimate keeps its intervals."""
+    from commission.ident.assess import LOAD_ENCODER_REMEDY, assess
+
+    f_r = modes(REFERENCE_PLANT).f_resonance_hz
+    stiff = replace(REFERENCE_PLANT, K=300 * REFERENCE_PLANT.K, D=10 * REFERENCE_PLANT.D)
+    assert modes(stiff).f_resonance_hz > 1000.0
+    for p, fs, eps_deg, band_top_hz, shown in ((REFERENCE_PLANT, 4000.0, 0.4, 2.0 * f_r, True),
+                                               (REFERENCE_PLANT, 4000.0, 0.4, 0.5 * f_r, False),
+                                               (stiff, 2000.0, 0.0, 2000.0, False)):
+        tau, r = _record(fs, 4.0, params=p, eps_deg=eps_deg, encoder_bits_motor=20, torque_noise_nm=2e-4, seed=3)
+        kp = kalman_problem(tau, r.motor_position, fs)
+        inn = innovations(kp, p, math.radians(eps_deg), process_noise_nm=2e-4)
+        assert inn is not None and _rms(inn.normalized) < 1.5  # the record is this plant's
+        estimate = replace(_start(p, math.radians(eps_deg)), process_noise_nm=2e-4, innovations=inn,
+                           n_effective=float(inn.normalized.size), converged=True, covariance=np.diag([1e-8] * 7),
+                           names=("ln J_m", "ln J_l", "ln B_m", "ln B_l", "ln K", "ln D", "epsilon_deg"))
+        for load_encoder in (False, True):
+            q = assess(estimate, torque_rms_nm=_rms(tau), sample_rate_hz=fs, band_top_hz=band_top_hz,
+                       load_encoder=load_encoder)
+            beyond = [x for x in q.reasons if "beyond the" in x]
+            assert q.determined == shown and (not beyond) == shown, (band_top_hz, q.reasons)
+            if not shown:
+                assert q.approximate and f"{modes(p).f_resonance_hz:.3g} Hz" in beyond[0]
+                assert f"{p.J_m + p.J_l:.4g} kg·m²" in beyond[0]
+                assert (LOAD_ENCODER_REMEDY in q.remedies) == (not load_encoder)
+
+
 def test_an_objective_runs_its_predictor_once_per_point_and_keeps_no_difference_columns() -> None:
     """A least squares starts where its objective's plateau was set, and what follows it evaluates its
     optimum again: the objective keeps its last points (the same bits a fresh evaluation gives), not the

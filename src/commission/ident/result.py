@@ -62,8 +62,8 @@ class FitQuality:
     the approximate level and not white, or in bursts above the good-fit level."""
     determined: bool = True
     """False when the model explains none of the torque (its residual is at least RMS τ_ref, as much as no
-    model at all leaves): the estimates carry no information, and every interval is the whole range the
-    fit searched."""
+    model at all leaves), or the estimate's resonance lies beyond what the record shows: the estimates carry
+    no information on the shaft, and every interval is the whole range the fit searched."""
 
     innovation_rms: float | None = None
     """Kalman fit: RMS of its normalized one-step prediction errors e/√S (1: the model and the noise
