@@ -219,7 +219,16 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float, load_enc
                       innovation_rms=level, process_noise_ratio=disturbance,
                       remedies=(_remedies(fit.parameters, band_top_hz, sample_rate_hz)
                                 if misfit and level < INNOVATION_UNDETERMINED and not load_encoder
-                                else (LOAD_ENCODER_REMEDY,) if unseen_hz is not None and not load_encoder else ()))
+                                else (_unseen_remedy(band_top_hz, sample_rate_hz),) if unseen_hz is not None else ()))
+
+
+def _unseen_remedy(band_top_hz: float | None, sample_rate_hz: float) -> str:
+    """What a record whose shaft :func:`_unseen_resonance_hz` found hidden needs (22:083: at 20 bits instead of
+    17 its motor encoder gave every parameter within 0.1 %; a chirp 5× as large, or a 20-bit load encoder
+    beside the 17-bit motor's, left it flagged)."""
+    return (f"log the motor's position with a finer encoder (more bits): this record shows no resonance below "
+            f"{_shown_top_hz(band_top_hz, sample_rate_hz):.0f} Hz, where a damped shaft hides in a coarse encoder's "
+            "steps; or end the chirp higher (excitation.f_end_hz) if the shaft resonates above that")
 
 
 def _shown_top_hz(band_top_hz: float | None, sample_rate_hz: float) -> float:
