@@ -224,7 +224,7 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float, load_enc
 
 def _unseen_remedy(band_top_hz: float | None, sample_rate_hz: float) -> str:
     """What a record whose shaft :func:`_unseen_resonance_hz` found hidden needs (22:083: at 20 bits instead of
-    17 its motor encoder gave every parameter within 0.1 %; a chirp 5× as large, or a 20-bit load encoder
+    17 its motor encoder gave J and K within 0.05 %; a chirp 5× as large, or a 20-bit load encoder
     beside the 17-bit motor's, left it flagged)."""
     return (f"log the motor's position with a finer encoder (more bits): this record shows no resonance below "
             f"{_shown_top_hz(band_top_hz, sample_rate_hz):.0f} Hz, where a damped shaft hides in a coarse encoder's "
