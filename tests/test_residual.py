@@ -351,3 +351,38 @@ def test_the_observer_without_gain_is_the_open_loop_simulation_and_with_it_follo
     at_truth = rms(residual_vector(p, **true, epsilon_rad=eps, observer=observer))
     assert at_truth < 1e-3
     assert rms(residual_vector(p, **true, epsilon_rad=0.9 * eps, observer=observer)) > 10 * at_truth
+
+
+def test_the_encoders_note_says_whether_the_residuals_low_pass_could_go_lower() -> None:
+    """A 17-bit encoder on a 227 Hz plant (family member 22:083): from a start resonating at a quarter of
+    that, the low-pass is lowered until the quantization leaves the target, and the note names both
+    cut-offs; from the true plant, twice its resonance is the cut-off already, and the note says the
+    quantization stays above the target there (it once read "at 453 Hz instead of 453 Hz")."""
+    from dataclasses import replace
+
+    from commission.ident.options import IdentificationOptions
+    from commission.ident.start import cutoff_note, excited_band_hz, residual_cutoff
+    from commission.ident.twomass import modes
+    from sim_drive.family import member
+
+    m = member(22, 83)
+    rec = m.simulate()
+    opt, target = IdentificationOptions(), 2.5e-3
+    ref = float(np.sqrt(np.mean(rec.torque_ref ** 2)))
+    band = excited_band_hz(rec.torque_ref, rec.sample_rate_hz)
+    soft = replace(m.two_mass, K=m.two_mass.K / 16, D=m.two_mass.D / 4)
+    lowered = residual_cutoff(rec, soft, band, opt.residual_cutoff_hz, ref, target)
+    assert lowered["cutoff_hz"] < 0.5 * lowered["unlowered_cutoff_hz"]
+    assert lowered["quantization_floor_ratio"] == pytest.approx(target, rel=1e-6)
+    note = cutoff_note(lowered)
+    assert note is not None
+    assert f"at {lowered['cutoff_hz']:.0f} Hz instead of {lowered['unlowered_cutoff_hz']:.0f} Hz" in note
+    floor = residual_cutoff(rec, m.two_mass, band, opt.residual_cutoff_hz, ref, target)
+    assert floor["cutoff_hz"] == pytest.approx(2.0 * modes(m.two_mass).f_resonance_hz, rel=1e-9)
+    assert floor["quantization_floor_ratio"] > 10 * target
+    note = cutoff_note(floor)
+    assert note is not None and "instead of" not in note
+    assert f"{100 * floor['quantization_floor_ratio']:.2g} % of RMS τ_ref even low-passed at {floor['cutoff_hz']:.0f} Hz" in note
+    # where the quantization stays below the target the cut-off is left alone, with no note
+    fine = residual_cutoff(rec, m.two_mass, band, opt.residual_cutoff_hz, ref, 10.0)
+    assert "unlowered_cutoff_hz" not in fine and cutoff_note(fine) is None

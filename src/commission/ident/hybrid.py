@@ -277,7 +277,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
 def _start_stage(run: _Run) -> None:
     """The frequency-domain start (or the encoders'), the residual's low-pass, and the notes on them."""
     from .scan import EPSILON_EXTEND_MAX_DEG
-    from .start import frequency_start, load_encoder_start, load_origin_rad, residual_cutoff
+    from .start import cutoff_note, frequency_start, load_encoder_start, load_origin_rad, residual_cutoff
 
     opt, fs = run.opt, run.fs
     run.problem = run.prepared(min(opt.residual_cutoff_hz, 0.4 * fs))
@@ -322,11 +322,9 @@ def _start_stage(run: _Run) -> None:
     run.torque_rms_nm = ref
     if run.start is not None and "current_loop" in opt.model_terms:
         run.lag_s = max(run.start.delay_s - 1.0 / fs, 0.0)
-    if run.cutoff.get("unlowered_cutoff_hz"):
-        run.notes.append(f"the motor encoder's step ({run.cutoff['position_step_rad']:.3g} rad) would leave much of "
-                         f"the torque as noise in the residual; low-passed at {run.cutoff['cutoff_hz']:.0f} Hz "
-                         f"instead of {run.cutoff['unlowered_cutoff_hz']:.0f} Hz — a finer encoder would let the "
-                         "fit see more")
+    note = cutoff_note(run.cutoff)
+    if note is not None:
+        run.notes.append(note)
     if run.rec.motor_position is None:
         run.notes.append("motor position rebuilt from the velocity (x[k] = x[k−1] + Ts·v[k])")
     if run.use_load:

@@ -29,7 +29,7 @@ from .scan import cell_rates, projected_cell
 from .tffit import TransferFunctionFit, fit_transfer_function
 from .twomass import TwoMassParameters, from_velocity_tf, modes
 
-__all__ = ["Start", "excited_band_hz", "frequency_start", "linear_start", "quantization_floor_nm",
+__all__ = ["Start", "cutoff_note", "excited_band_hz", "frequency_start", "linear_start", "quantization_floor_nm",
            "residual_cutoff"]
 
 #: Raised low band edges of the frequency-domain start [Hz], tried when the whole band's fit is
@@ -327,6 +327,19 @@ def residual_cutoff(rec: Recording, start: TwoMassParameters, band_high_hz: floa
             else lowest
         out.update(cutoff_hz=new, quantization_floor_ratio=floor(new), unlowered_cutoff_hz=fc)
     return out
+
+
+def cutoff_note(cutoff: dict[str, Any]) -> str | None:
+    """The note on a :func:`residual_cutoff` the encoder's quantization lowered, or could not lower further
+    (twice the start's resonance is its floor); None where the encoder left the cut-off alone."""
+    if not cutoff.get("unlowered_cutoff_hz"):
+        return None
+    cut, unlowered = cutoff["cutoff_hz"], cutoff["unlowered_cutoff_hz"]
+    where = (f"low-passed at {cut:.0f} Hz instead of {unlowered:.0f} Hz" if cut < 0.99 * unlowered else
+             f"it leaves {100 * cutoff['quantization_floor_ratio']:.2g} % of RMS τ_ref even low-passed at {cut:.0f} Hz, "
+             "as low as twice the start's resonance allows")
+    return (f"the motor encoder's step ({cutoff['position_step_rad']:.3g} rad) would leave much of the torque as noise "
+            f"in the residual; {where} — a finer encoder would let the fit see more")
 
 
 @dataclass(frozen=True)
