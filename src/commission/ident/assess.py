@@ -178,7 +178,8 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float, load_enc
     # a noise model that stands in for missing dynamics leaves curvature that describes no error of the
     # estimate's (a bias): nothing is claimed then
     explained = level < INNOVATION_UNDETERMINED and not absorbed
-    unseen_hz = _unseen_resonance_hz(fit.parameters, band_top_hz, sample_rate_hz)
+    resonance_hz = _resonance_hz(fit.parameters)
+    unseen_hz = _unseen_resonance_hz(resonance_hz, band_top_hz, sample_rate_hz)
     determined = explained and unseen_hz is None
     scale = max(1.0, level) if misfit else 1.0
     if scale > 1.0:
@@ -217,7 +218,7 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float, load_enc
                       observer_bandwidth_hz=0.0, effective_samples=fit.n_effective, converged=fit.converged,
                       interval_scale=scale, model_error=bool(misfit or not explained), determined=determined,
                       innovation_rms=level, process_noise_ratio=disturbance,
-                      remedies=(_remedies(fit.parameters, band_top_hz, sample_rate_hz)
+                      remedies=(_remedies(resonance_hz, band_top_hz, sample_rate_hz)
                                 if misfit and level < INNOVATION_UNDETERMINED and not load_encoder
                                 else (_unseen_remedy(band_top_hz, sample_rate_hz),) if unseen_hz is not None else ()))
 
@@ -236,32 +237,32 @@ def _shown_top_hz(band_top_hz: float | None, sample_rate_hz: float) -> float:
     return min(band_top_hz if band_top_hz is not None else math.inf, 0.5 * sample_rate_hz)
 
 
-def _unseen_resonance_hz(estimate: TwoMassParameters, band_top_hz: float | None, sample_rate_hz: float) -> float | None:
+def _resonance_hz(estimate: TwoMassParameters) -> float:
+    """The estimate's resonance [Hz]; NaN where it has no complex pole pair (the assessment of the modes says so)."""
+    try:
+        return modes(estimate).f_resonance_hz
+    except IdentificationError:
+        return math.nan
+
+
+def _unseen_resonance_hz(resonance_hz: float, band_top_hz: float | None, sample_rate_hz: float) -> float | None:
     """The estimate's resonance where it lies beyond what the record shows (:func:`_shown_top_hz`), else None [Hz].
 
     Checked only where the excited band is known (the final assessment): a light load on a damped shaft whose
     resonance hides in a coarse encoder's noise gave a rigid body's fit, J_m + J_l exact and the resonance at
     54 kHz for 227 Hz, K ×1100 with a 0.01 % interval (22:083)."""
-    if band_top_hz is None:
+    if band_top_hz is None or not resonance_hz > _shown_top_hz(band_top_hz, sample_rate_hz):
         return None
-    try:
-        resonance_hz = modes(estimate).f_resonance_hz
-    except IdentificationError:  # no complex pole pair: the assessment of the modes says so
-        return None
-    return resonance_hz if resonance_hz > _shown_top_hz(band_top_hz, sample_rate_hz) else None
+    return resonance_hz
 
 
-def _remedies(estimate: TwoMassParameters, band_top_hz: float | None, sample_rate_hz: float) -> tuple[str, ...]:
+def _remedies(resonance_hz: float, band_top_hz: float | None, sample_rate_hz: float) -> tuple[str, ...]:
     """What a new motor-side record needs: a load encoder; and a chirp ending at ``CHIRP_END_PER_RESONANCE``×
-    the estimate's resonance where this record's band stops below ``CHIRP_END_ENOUGH_PER_RESONANCE``× it
+    the estimate's resonance (``resonance_hz``, NaN where it has none) where this record's band stops below ``CHIRP_END_ENOUGH_PER_RESONANCE``× it
     (named: a flagged estimate of the family puts the resonance up to 73 % low but at most 3 % high, so the
     frequency is a floor), or does not reach it (not named: the record does not show it; 2 s of a chirp with
     heavy motor friction put it at 2.4 kHz, 37× the plant's). A band past ``CHIRP_END_ENOUGH_PER_RESONANCE``×
     the resonance gets no chirp remedy: a longer sweep did not help there."""
-    try:
-        resonance_hz = modes(estimate).f_resonance_hz
-    except IdentificationError:
-        resonance_hz = math.nan
     if band_top_hz is None or not resonance_hz < band_top_hz:
         return MOTOR_SIDE_REMEDIES
     if band_top_hz >= CHIRP_END_ENOUGH_PER_RESONANCE * resonance_hz:
