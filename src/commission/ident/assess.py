@@ -171,7 +171,7 @@ def assess(fit: PemFit, *, torque_rms_nm: float, sample_rate_hz: float, load_enc
     level = inn.rms
     flat, stationary = whiteness(nu, sample_rate_hz)
     white = flat >= WHITE_FLATNESS and stationary <= WHITE_STATIONARY
-    disturbance = fit.process_noise_nm / max(torque_rms_nm, 1e-300)
+    disturbance = fit.disturbance_nm / max(torque_rms_nm, 1e-300)
     absorbed = disturbance >= DISTURBANCE_MISFIT
     suspect = disturbance >= DISTURBANCE_SUSPECT
     misfit = level > INNOVATION_MISFIT or absorbed or suspect
@@ -286,4 +286,4 @@ def _unevaluated(fit: PemFit, torque_rms_nm: float, sample_rate_hz: float) -> Fi
                       window_rms_p90_over_median=math.inf, noise_limited=False, approximate=True, reasons=(reason,),
                       cutoff_hz=0.5 * sample_rate_hz, observer_bandwidth_hz=0.0, effective_samples=fit.n_effective,
                       converged=fit.converged, model_error=True, determined=False, innovation_rms=math.inf,
-                      process_noise_ratio=fit.process_noise_nm / max(torque_rms_nm, 1e-300))
+                      process_noise_ratio=fit.disturbance_nm / max(torque_rms_nm, 1e-300))

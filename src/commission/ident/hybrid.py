@@ -243,7 +243,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
     pem = _kalman_stage(run, pem)
     st.done("kalman", process_noise_nm=pem.process_noise_nm, load_share=pem.load_share, evaluations=pem.evaluations,
             converged=pem.converged, events=pem.innovations.events if pem.innovations is not None else 0)
-    if pem.process_noise_nm > _COGGING_DISTURBANCE * _torque_rms(run):
+    if pem.disturbance_nm > _COGGING_DISTURBANCE * _torque_rms(run):
         st.start("cogging", 0.6)
         run, pem = _cogging_stage(run, pem)
         st.done("cogging", **(run.cogging.to_dict() if run.cogging is not None else {}))
@@ -264,7 +264,7 @@ def _identify_hybrid(rec: Recording, opt: IdentificationOptions, st: _Stages, ba
     # stage was hedged (17) or its start had no gap (6): bench/results/family.md)
     level = pem.innovations.rms if pem.innovations is not None else math.inf
     if (first.encoders is not None and start.epsilon_rad > 0.0
-            and pem.process_noise_nm >= DISTURBANCE_MISFIT * _torque_rms(run) and level < INNOVATION_UNDETERMINED):
+            and pem.disturbance_nm >= DISTURBANCE_MISFIT * _torque_rms(run) and level < INNOVATION_UNDETERMINED):
         st.start("hedged", 0.8)
         run, pem = _hedged_stage(first, start, run, pem)
         st.done("hedged", process_noise_nm=pem.process_noise_nm, evaluations=pem.evaluations)
@@ -471,7 +471,7 @@ def _model_error(run: _Run, pem: PemFit) -> bool:
 
 
 def _needs_disturbance(run: _Run, pem: PemFit) -> bool:
-    return pem.process_noise_nm > _RESTART_DISTURBANCE * _torque_rms(run)
+    return pem.disturbance_nm > _RESTART_DISTURBANCE * _torque_rms(run)
 
 
 def _torque_rms(run: _Run) -> float:
@@ -661,7 +661,7 @@ def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_
         run.notes.append("the estimate needs a large disturbance; the fit hedging the gap's contacts (sigma points "
                          "across the twist) did not explain the record better")
         return run, replace(pem, evaluations=spent)
-    first.notes.append(f"the estimate needed a disturbance of {100 * pem.process_noise_nm / _torque_rms(run):.2g} % "
+    first.notes.append(f"the estimate needed a disturbance of {100 * pem.disturbance_nm / _torque_rms(run):.2g} % "
                        "of RMS τ_ref; from the fit hedging the gap's contacts (sigma points across the twist), the "
                        f"estimate makes the record {_likelier(_likelihood_cost(pem), _likelihood_cost(other))}× "
                        "as likely per prediction error and is kept")

@@ -69,8 +69,8 @@ class FitQuality:
     """Kalman fit: RMS of its normalized one-step prediction errors e/√S (1: the model and the noise
     model explain the record; more is model error) [-]."""
     process_noise_ratio: float | None = None
-    """Kalman fit: the torque disturbance per sample its noise model assumes (chosen by likelihood) /
-    RMS τ_ref [-]."""
+    """Kalman fit: the torque disturbance per sample its noise model assumes (chosen by likelihood; the larger of
+    the motor's and the load's) / RMS τ_ref [-]."""
     remedies: tuple[str, ...] = ()
     """What a new record would need, when a record without a load encoder leaves model error the predictor still
     follows (a start in a wrong basin, typically): for the technician, not a reason; empty otherwise."""
