@@ -694,9 +694,10 @@ def _lag_stage(run: _Run, pem: PemFit) -> tuple[PemFit, bool]:
     if not _pays_for(kp, pem, other, added):
         return replace(pem, evaluations=spent), False
     run.notes.append(f"the estimate needed a disturbance of {100 * pem.disturbance_nm / _torque_rms(run):.2g} % of "
-                     f"RMS τ_ref without a current loop; with one (started at {_LAG_STAGE_START_S * 1e6:.0f} µs) it makes "
-                     f"the record {_likelier(_likelihood_cost(pem), _likelihood_cost(other))}× as likely per "
-                     "prediction error and is kept")
+                     "RMS τ_ref without a current loop; with one (started at "
+                     f"{_LAG_STAGE_START_S * 1e6:.0f} µs) it makes the record "
+                     f"{_likelier(_likelihood_cost(pem), _likelihood_cost(other))}× as likely per prediction error "
+                     "and is kept")
     return replace(other, evaluations=spent), True
 
 
