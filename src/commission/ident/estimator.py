@@ -658,7 +658,7 @@ def _armed(obj: _KalmanObjective, z: NDArray[np.float64]) -> _KalmanObjective:
 
 
 def _noise_level(at: Callable[[float, float], Innovations | None], pool: ThreadPoolExecutor,
-                 shares: tuple[float, ...]) -> tuple[float, float]:
+                 shares: tuple[float, ...] = _LOAD_SHARES) -> tuple[float, float]:
     """The noise model of the largest likelihood: (torque disturbance relative to RMS τ_ref, the load's
     share of it) over ``_PROCESS_NOISE_GRID`` × ``shares``, the level then refined to the vertex of
     the parabola in ln q through the best and its neighbours."""
