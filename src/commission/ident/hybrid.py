@@ -477,6 +477,11 @@ def _model_error(run: _Run, pem: PemFit) -> bool:
     return q.model_error or _needs_disturbance(run, pem)
 
 
+def _configured_terms(opt: IdentificationOptions) -> ModelTerms:
+    """Every model term the options allow."""
+    return ModelTerms(**{f.name: f.name in opt.model_terms for f in fields(ModelTerms)})
+
+
 def _needs_disturbance(run: _Run, pem: PemFit) -> bool:
     return pem.disturbance_nm > _RESTART_DISTURBANCE * _torque_rms(run)
 
@@ -684,7 +689,7 @@ def _lag_stage(run: _Run, pem: PemFit) -> tuple[PemFit, bool]:
     from .estimator import kalman_fit
 
     kp = run.kalman
-    terms = ModelTerms(**{f.name: f.name in run.opt.model_terms for f in fields(ModelTerms)})
+    terms = _configured_terms(run.opt)
     eps_max = max(run.epsilon_searched_rad, 2.0 * pem.epsilon_rad)
     other = kalman_fit(kp, replace(pem, terms=terms, lag_s=_LAG_STAGE_START_S), epsilon_max_rad=eps_max,
                        threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations,
@@ -797,7 +802,7 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedge: Hedge | None = None, retry
     # the torque-residual fit's term selection can miss friction the Kalman fit then needs a large
     # disturbance for (22:038, 22:049): from this estimate again with every configured term, kept when the
     # likelihood gain pays for the parameters added (the BIC)
-    candidates = ModelTerms(**{f.name: f.name in run.opt.model_terms for f in fields(ModelTerms)})
+    candidates = _configured_terms(run.opt)
     # so can the screen on the load's friction where the encoders measured the load's own equation of motion
     # and show friction the estimate lacks: left out, 0.8 % of τ_ref on a light load biased ε by 7 % behind an
     # interval that missed the truth (22:171); fitted from the start instead, it led 22:188 astray
