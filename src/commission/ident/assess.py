@@ -258,8 +258,8 @@ def _unseen_resonance_hz(resonance_hz: float, band_top_hz: float | None, sample_
 
 def _remedies(resonance_hz: float, band_top_hz: float | None, sample_rate_hz: float) -> tuple[str, ...]:
     """What a new motor-side record needs: a load encoder; and a chirp ending at ``CHIRP_END_PER_RESONANCE``×
-    the estimate's resonance (``resonance_hz``, NaN where it has none) where this record's band stops below ``CHIRP_END_ENOUGH_PER_RESONANCE``× it
-    (named: a flagged estimate of the family puts the resonance up to 73 % low but at most 3 % high, so the
+    the estimate's resonance (``resonance_hz``, NaN where it has none) where this record's band stops below
+    ``CHIRP_END_ENOUGH_PER_RESONANCE``× it (named: a flagged estimate of the family puts the resonance up to 73 % low but at most 3 % high, so the
     frequency is a floor), or does not reach it (not named: the record does not show it; 2 s of a chirp with
     heavy motor friction put it at 2.4 kHz, 37× the plant's). A band past ``CHIRP_END_ENOUGH_PER_RESONANCE``×
     the resonance gets no chirp remedy: a longer sweep did not help there."""

@@ -482,6 +482,12 @@ def _configured_terms(opt: IdentificationOptions) -> ModelTerms:
     return ModelTerms(**{f.name: f.name in opt.model_terms for f in fields(ModelTerms)})
 
 
+def _kalman_options(run: _Run, epsilon_max_rad: float) -> dict[str, Any]:
+    """The keyword arguments of a Kalman fit (:func:`~commission.ident.estimator.kalman_fit`) the options set."""
+    return dict(epsilon_max_rad=epsilon_max_rad, threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations,
+                keep_all=run.opt.term_selection == "keep_all")
+
+
 def _needs_disturbance(run: _Run, pem: PemFit) -> bool:
     return pem.disturbance_nm > _RESTART_DISTURBANCE * _torque_rms(run)
 
@@ -691,9 +697,7 @@ def _lag_stage(run: _Run, pem: PemFit) -> tuple[PemFit, bool]:
     kp = run.kalman
     terms = _configured_terms(run.opt)
     eps_max = max(run.epsilon_searched_rad, 2.0 * pem.epsilon_rad)
-    other = kalman_fit(kp, replace(pem, terms=terms, lag_s=_LAG_STAGE_START_S), epsilon_max_rad=eps_max,
-                       threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations,
-                       keep_all=run.opt.term_selection == "keep_all")
+    other = kalman_fit(kp, replace(pem, terms=terms, lag_s=_LAG_STAGE_START_S), **_kalman_options(run, eps_max))
     spent = pem.evaluations + other.evaluations
     added = len(terms.names()) - len(pem.terms.names())
     if not _pays_for(kp, pem, other, added):
@@ -784,8 +788,7 @@ def _kalman_stage(run: _Run, start: PemFit, *, hedge: Hedge | None = None, retry
     if not math.isfinite(eps_max):
         eps_max = math.radians(2.0 * run.opt.epsilon_bounds_deg[1])
     run.epsilon_searched_rad = max(run.epsilon_searched_rad, eps_max)
-    keep_all = run.opt.term_selection == "keep_all"
-    kw = dict(epsilon_max_rad=eps_max, threads=run.opt.threads, max_nfev=run.opt.max_fit_evaluations, keep_all=keep_all)
+    kw = _kalman_options(run, eps_max)
     if hedge is None:
         hedge = _hedge(run, start)
     memo: dict[str, Any] = {}
