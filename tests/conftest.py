@@ -88,7 +88,8 @@ def two_mass_plant(ratio: float, f_r: float, zeta: float, B_l: float | None = No
 
 #: The files that take longest (a third of the suite's time between them; `pytest --durations=0`), run
 #: first: with ``--dist loadfile`` a file stays on one worker, and one started last holds the others idle.
-SLOWEST_FIRST = ("test_identify.py", "test_hybrid.py", "test_serial_e2e.py", "test_safety.py", "test_cli.py")
+SLOWEST_FIRST = ("test_identify.py", "test_hybrid.py", "test_family_records.py", "test_serial_e2e.py",
+                 "test_safety.py", "test_cli.py")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
