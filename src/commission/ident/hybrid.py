@@ -700,21 +700,27 @@ def _lag_stage(run: _Run, pem: PemFit) -> tuple[PemFit, bool]:
     the loop's lag is within a standard error of it while the rest is a few % off, and the fit holds it there:
     25:002 (a 2.9 kHz loop recorded at 2 kHz) stayed at a 30 % disturbance with J_m +3 %, K +5 %, and went to
     the truth (1 % disturbance) from 50 or 125 µs."""
+    other, kept = _refit(run, pem, replace(pem, terms=_configured_terms(run.opt), lag_s=_LAG_STAGE_START_S))
+    if kept:
+        run.notes.append(f"the estimate needed a disturbance of {100 * pem.disturbance_nm / _torque_rms(run):.2g} % "
+                         "of RMS τ_ref without a current loop; with one (started at "
+                         f"{_LAG_STAGE_START_S * 1e6:.0f} µs) it makes the record "
+                         f"{_likelier(_likelihood_cost(pem), _likelihood_cost(other))}× as likely per prediction "
+                         "error and is kept")
+    return other, kept
+
+
+def _refit(run: _Run, pem: PemFit, start: PemFit) -> tuple[PemFit, bool]:
+    """The Kalman fit from ``start`` (``pem`` with other terms or their values), and whether it is kept: the record
+    likelier than at ``pem`` by more than the BIC's price of the terms it adds; else ``pem`` (either with the
+    evaluations of both)."""
     from .estimator import kalman_fit
 
-    kp = run.kalman
-    terms = _configured_terms(run.opt)
     eps_max = max(run.epsilon_searched_rad, 2.0 * pem.epsilon_rad)
-    other = kalman_fit(kp, replace(pem, terms=terms, lag_s=_LAG_STAGE_START_S), **_kalman_options(run, eps_max))
+    other = kalman_fit(run.kalman, start, **_kalman_options(run, eps_max))
     spent = pem.evaluations + other.evaluations
-    added = len(terms.names()) - len(pem.terms.names())
-    if not _pays_for(kp, pem, other, added):
+    if not _pays_for(run.kalman, pem, other, len(start.terms.names()) - len(pem.terms.names())):
         return replace(pem, evaluations=spent), False
-    run.notes.append(f"the estimate needed a disturbance of {100 * pem.disturbance_nm / _torque_rms(run):.2g} % of "
-                     "RMS τ_ref without a current loop; with one (started at "
-                     f"{_LAG_STAGE_START_S * 1e6:.0f} µs) it makes the record "
-                     f"{_likelier(_likelihood_cost(pem), _likelihood_cost(other))}× as likely per prediction error "
-                     "and is kept")
     return replace(other, evaluations=spent), True
 
 
@@ -727,9 +733,7 @@ def _friction_stage(run: _Run, pem: PemFit) -> tuple[PemFit, bool]:
     determines the sum far better than the split: the fit can end with the split wrong and not move. 25:006
     stayed at a 5 % disturbance with the load's friction at 0; 22:049 at 5.5 % and 22:186 at 4.3 % with a
     fifth and a third of the sum on the load, not a fourteenth and an eighth (J, K within 0.3 %); from the
-    values chosen each went to the truth (0.1–0.4 %). (A second round, tried, made the two members it ran on
-    likelier but neither within: bench/results/family.md.)"""
-    from .estimator import kalman_fit
+    values chosen each went to the truth (0.1–0.4 %)."""
     from .kalman import innovations
 
     kp, terms = run.kalman, _configured_terms(run.opt)
@@ -756,18 +760,14 @@ def _friction_stage(run: _Run, pem: PemFit) -> tuple[PemFit, bool]:
     if not pairs or not min(costs) < cost(base):
         return pem, False
     fm, fl = pairs[int(np.argmin(costs))]
-    eps_max = max(run.epsilon_searched_rad, 2.0 * pem.epsilon_rad)
-    other = kalman_fit(kp, replace(pem, terms=terms, coulomb_motor_nm=fm, coulomb_load_nm=fl),
-                       **_kalman_options(run, eps_max))
-    spent = pem.evaluations + other.evaluations
-    if not _pays_for(kp, pem, other, len(terms.names()) - len(pem.terms.names())):
-        return replace(pem, evaluations=spent), False
-    run.notes.append(f"the estimate needed a disturbance of {100 * pem.disturbance_nm / _torque_rms(run):.2g} % of "
-                     f"RMS τ_ref with Coulomb friction of {m0:.3g} N·m on the motor and {l0:.3g} N·m on the load; "
-                     f"from {fm:.3g} and {fl:.3g} N·m it makes the record "
-                     f"{_likelier(_likelihood_cost(pem), _likelihood_cost(other))}× as likely per prediction error "
-                     "and is kept")
-    return replace(other, evaluations=spent), True
+    other, kept = _refit(run, pem, replace(pem, terms=terms, coulomb_motor_nm=fm, coulomb_load_nm=fl))
+    if kept:
+        run.notes.append(f"the estimate needed a disturbance of {100 * pem.disturbance_nm / _torque_rms(run):.2g} % "
+                         f"of RMS τ_ref with Coulomb friction of {m0:.3g} N·m on the motor and {l0:.3g} N·m on the "
+                         f"load; from {fm:.3g} and {fl:.3g} N·m it makes the record "
+                         f"{_likelier(_likelihood_cost(pem), _likelihood_cost(other))}× as likely per prediction "
+                         "error and is kept")
+    return other, kept
 
 
 def _cogging_stage(run: _Run, pem: PemFit) -> tuple[_Run, PemFit]:
