@@ -507,6 +507,14 @@ def _needs_disturbance(run: _Run, pem: PemFit) -> bool:
     return pem.disturbance_nm > _RESTART_DISTURBANCE * _torque_rms(run)
 
 
+def _kept_note(run: _Run, pem: PemFit, other: PemFit, at: str, how: str) -> str:
+    """The note of a stage that kept ``other`` over ``pem``, an estimate that needed a disturbance: what ``pem``
+    was ``at``, ``how`` the stage found ``other``, and how much likelier the record is there."""
+    return (f"the estimate needed a disturbance of {100 * pem.disturbance_nm / _torque_rms(run):.2g} % of RMS τ_ref"
+            f"{at}; {how} makes the record {_likelier(_likelihood_cost(pem), _likelihood_cost(other))}× as likely "
+            "per prediction error and is kept")
+
+
 def _torque_rms(run: _Run) -> float:
     return float(np.sqrt(np.mean(run.rec.torque_ref ** 2)))
 
@@ -694,10 +702,8 @@ def _hedged_stage(first: _Run, start: PemFit, run: _Run, pem: PemFit) -> tuple[_
         run.notes.append("the estimate needs a large disturbance; the fit hedging the gap's contacts (sigma points "
                          "across the twist) did not explain the record better")
         return run, replace(pem, evaluations=spent)
-    first.notes.append(f"the estimate needed a disturbance of {100 * pem.disturbance_nm / _torque_rms(run):.2g} % "
-                       "of RMS τ_ref; from the fit hedging the gap's contacts (sigma points across the twist), the "
-                       f"estimate makes the record {_likelier(_likelihood_cost(pem), _likelihood_cost(other))}× "
-                       "as likely per prediction error and is kept")
+    first.notes.append(_kept_note(run, pem, other, "", "from the fit hedging the gap's contacts (sigma points "
+                                  "across the twist), the estimate"))
     return first, replace(other, evaluations=spent)
 
 
@@ -709,11 +715,8 @@ def _lag_stage(run: _Run, pem: PemFit) -> tuple[PemFit, bool]:
     the truth (1 % disturbance) from 50 or 125 µs."""
     other, kept = _refit(run, pem, replace(pem, terms=_configured_terms(run.opt), lag_s=_LAG_STAGE_START_S))
     if kept:
-        run.notes.append(f"the estimate needed a disturbance of {100 * pem.disturbance_nm / _torque_rms(run):.2g} % "
-                         "of RMS τ_ref without a current loop; with one (started at "
-                         f"{_LAG_STAGE_START_S * 1e6:.0f} µs) it makes the record "
-                         f"{_likelier(_likelihood_cost(pem), _likelihood_cost(other))}× as likely per prediction "
-                         "error and is kept")
+        run.notes.append(_kept_note(run, pem, other, " without a current loop",
+                                    f"with one (started at {_LAG_STAGE_START_S * 1e6:.0f} µs) it"))
     return other, kept
 
 
@@ -761,10 +764,8 @@ def _gap_stage(run: _Run, pem: PemFit) -> tuple[PemFit, bool]:
     eps = _GAP_FACTORS[int(np.argmin(costs))] * pem.epsilon_rad
     other, kept = _refit(run, pem, replace(pem, epsilon_rad=eps))
     if kept:
-        run.notes.append(f"the estimate needed a disturbance of {100 * pem.disturbance_nm / _torque_rms(run):.2g} % "
-                         f"of RMS τ_ref at ε {math.degrees(pem.epsilon_rad):.4g}°; from {math.degrees(eps):.4g}° it "
-                         f"makes the record {_likelier(_likelihood_cost(pem), _likelihood_cost(other))}× as likely "
-                         "per prediction error and is kept")
+        run.notes.append(_kept_note(run, pem, other, f" at ε {math.degrees(pem.epsilon_rad):.4g}°",
+                                    f"from {math.degrees(eps):.4g}° it"))
     return other, kept
 
 
@@ -798,11 +799,8 @@ def _friction_stage(run: _Run, pem: PemFit) -> tuple[PemFit, bool]:
     fm, fl = pairs[int(np.argmin(costs))]
     other, kept = _refit(run, pem, replace(pem, terms=terms, coulomb_motor_nm=fm, coulomb_load_nm=fl))
     if kept:
-        run.notes.append(f"the estimate needed a disturbance of {100 * pem.disturbance_nm / _torque_rms(run):.2g} % "
-                         f"of RMS τ_ref with Coulomb friction of {m0:.3g} N·m on the motor and {l0:.3g} N·m on the "
-                         f"load; from {fm:.3g} and {fl:.3g} N·m it makes the record "
-                         f"{_likelier(_likelihood_cost(pem), _likelihood_cost(other))}× as likely per prediction "
-                         "error and is kept")
+        run.notes.append(_kept_note(run, pem, other, f" with Coulomb friction of {m0:.3g} N·m on the motor and "
+                                    f"{l0:.3g} N·m on the load", f"from {fm:.3g} and {fl:.3g} N·m it"))
     return other, kept
 
 
