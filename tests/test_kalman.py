@@ -423,6 +423,28 @@ def test_a_fit_still_descending_at_its_evaluation_limit_goes_on_to_the_optimum()
     assert fit.coulomb_motor_nm == pytest.approx(friction, rel=0.005)
 
 
+def test_a_fit_that_ties_the_dampings_sum_and_not_their_split_goes_along_the_valley_to_the_truth() -> None:
+    # a light load, no gap: the record fixes B_m + B_l tightly and their split loosely, a valley that is
+    # curved in (ln B_m, ln B_l); from B_m ×2, B_l ×0.3 the least squares crawled along it (family member
+    # 23:054: 200 evaluations for a third of the way) and stopped at its limit with B_m 7σ off the truth
+    fs = 4000.0
+    true = TwoMassParameters(J_m=1.09e-3, J_l=2.02e-4, B_m=1.74e-3, B_l=9.6e-4, K=364.0, D=0.0517)
+    tau, r = _record(fs, 6.0, true, eps_deg=0.0, encoder_bits_motor=20, seed=5)
+    kp = kalman_problem(tau, r.motor_position, fs)
+    start = TwoMassParameters(J_m=1.01 * true.J_m, J_l=0.99 * true.J_l, B_m=2.0 * true.B_m, B_l=0.3 * true.B_l,
+                              K=1.01 * true.K, D=true.D)
+    fit = kalman_fit(kp, _start(start, 0.0), epsilon_max_rad=math.radians(2.0), threads=2, max_nfev=14)
+    assert fit.converged, fit.message
+    p = fit.parameters
+    for name in ("J_m", "J_l", "K"):
+        assert getattr(p, name) == pytest.approx(getattr(true, name), rel=0.005), name
+    # each damping within 2.5 of its standard errors (the fit's covariance, in its log-coordinates) of the truth
+    sd = np.sqrt(np.diag(fit.covariance))
+    for name in ("B_m", "B_l"):
+        i = fit.names.index(f"ln {name}")
+        assert abs(math.log(getattr(p, name) / getattr(true, name))) < 2.5 * sd[i], (name, sd[i])
+
+
 def test_a_fit_stopped_at_its_limit_within_a_tenth_of_a_standard_error_of_its_optimum_has_converged() -> None:
     from scipy.optimize import least_squares
 
