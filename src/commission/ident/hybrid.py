@@ -316,7 +316,8 @@ def _start_stage(run: _Run) -> None:
     first = run.problem
 
     def encoders(problem: Any) -> Any:
-        return load_encoder_start(problem, top, threads=opt.threads)
+        return load_encoder_start(problem, top, threads=opt.threads,
+                                  current_loop="current_loop" in opt.model_terms)
 
     # with a load encoder, the encoders' start (no simulation, no FRD) at the first low-pass is the start: the
     # FRD's resonance is pulled low by the gap on backlash-rich records, and the low-pass chosen from a low
@@ -342,7 +343,9 @@ def _start_stage(run: _Run) -> None:
         if run.use_load:
             run.encoders = encoders(run.problem) or run.encoders
     run.torque_rms_nm = ref
-    if run.start is not None and "current_loop" in opt.model_terms:
+    if run.encoders is not None:
+        run.lag_s = run.encoders.lag_s  # fitted in the residual's own equation, not read off a delay
+    elif run.start is not None and "current_loop" in opt.model_terms:
         run.lag_s = max(run.start.delay_s - 1.0 / fs, 0.0)
     note = cutoff_note(run.cutoff)
     if note is not None:

@@ -352,6 +352,8 @@ class EncoderStart:
     coulomb_load_nm: float
     cost_nm: float
     """RMS of the motor equation's residual at the best ε [N·m]."""
+    lag_s: float = 0.0
+    """The current loop's time constant T_c the equations fit best [s] (0 when not searched)."""
 
 
 #: The load encoder's origin is searched for when a shift of the twist by this much [°] either way fits the
@@ -359,43 +361,65 @@ class EncoderStart:
 _ORIGIN_PROBE_DEG = 0.002
 
 
+#: Current-loop time constants T_c [s] the encoders' start scans (loops of ~50 Hz to ~16 kHz), after 0.
+_LAG_GRID_S = np.geomspace(10e-6, 3e-3, 25)
+
+
 def _deadzone(z: NDArray[np.float64], eps: float) -> NDArray[np.float64]:
     return np.where(z > eps, z - eps, np.where(z < -eps, z + eps, 0.0))
 
 
-def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads: int = 1) -> EncoderStart | None:
+def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads: int = 1,
+                       current_loop: bool = False) -> EncoderStart | None:
     """Every parameter and ε from both encoders by linear least squares, no simulation.
 
     With the load's position measured, the shaft torque is K·y + D·ẏ of the measured twist
     y = dz(x_m − x_l; ε), and both equations of motion,
 
-        J_m·ẍ_m + B_m·ẋ_m + F_cm·sgn ẋ_m + K·y + D·ẏ = τ_ref        J_l·ẍ_l + B_l·ẋ_l + F_cl·sgn ẋ_l = K·y + D·ẏ,
+        J_m·ẍ_m + B_m·ẋ_m + F_cm·sgn ẋ_m + K·y + D·ẏ = τ        J_l·ẍ_l + B_l·ẋ_l + F_cl·sgn ẋ_l = K·y + D·ẏ,
 
     are linear in the parameters for a given ε (equation error, the same low-pass as the residual):
     ε is scanned (log-spaced, then refined around the best), each ε one small least-squares
-    problem. Noise in the measured twist biases the damping (errors in variables), so this is the
-    estimator's start, not its answer. None when no ε gives positive inertias and stiffness. The ε are
-    shared out over ``threads`` (each its own problem: the same answer with any number).
+    problem. With ``current_loop`` τ is τ_ref behind a first-order loop whose time constant T_c is
+    scanned with ε (:data:`_LAG_GRID_S`, then refined; each T_c one more right-hand side of the same
+    problem): a loop near the band's top leaves τ_ref a poor stand-in for τ, and the stiffness and load
+    inertia that would explain the difference come out negative. Noise in the measured twist biases the
+    damping (errors in variables), so this is the estimator's start, not its answer. None when no
+    (ε, T_c) gives positive inertias and stiffness. The ε are shared out over ``threads`` (each its own
+    problem: the same answer with any number).
     """
     if problem.load_position is None:
         return None
-    solve = _encoder_equations(problem)
+    lags = np.concatenate(([0.0], _LAG_GRID_S)) if current_loop and problem.torque_ref is not None else np.zeros(1)
     grid = np.concatenate(([0.0], np.geomspace(math.radians(0.005), max(epsilon_top_rad, math.radians(0.01)), 40)))
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        costs = list(pool.map(solve, grid))
-        i = int(np.argmin([cst for cst, _ in costs]))
-        if not math.isfinite(costs[i][0]):
+        best = _best_of(list(pool.map(_encoder_equations(problem, lags), grid)))
+        if best is None:
             return None
-        lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
-        fine = np.linspace(lo, hi, 11)
-        refined = list(pool.map(solve, fine))
-    j = int(np.argmin([cst for cst, _ in refined]))
-    (cost, th), eps = (refined[j], fine[j]) if refined[j][0] <= costs[i][0] else (costs[i], grid[i])
+        i, j = best[1], best[2]
+        fine = np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)], 11)
+        fine_lags = (np.linspace(lags[max(j - 1, 0)], lags[min(j + 1, lags.size - 1)], 11) if lags.size > 1
+                     else lags)
+        refined = _best_of(list(pool.map(_encoder_equations(problem, fine_lags), fine)))
+    (cost, th), eps, lag = ((refined[0], fine[refined[1]], fine_lags[refined[2]])
+                            if refined is not None and refined[0][0] <= best[0][0]
+                            else (best[0], grid[i], lags[j]))
     J_m, B_m, J_l, B_l, K, D, F_m, F_l = (float(v) for v in th)
     S = max(abs(B_m) + abs(B_l), 1e-9)
     p = TwoMassParameters(J_m=J_m, J_l=J_l, B_m=max(B_m, 1e-3 * S), B_l=max(B_l, 1e-3 * S), K=K,
                           D=max(D, 1e-6 * K))
-    return EncoderStart(p, float(eps), max(F_m, 0.0), max(F_l, 0.0), cost)
+    return EncoderStart(p, float(eps), max(F_m, 0.0), max(F_l, 0.0), cost, float(lag))
+
+
+def _best_of(solved: list[tuple[NDArray[np.float64], NDArray[np.float64]]]
+             ) -> tuple[tuple[float, NDArray[np.float64]], int, int] | None:
+    """((cost [N·m], parameters), ε index, T_c index) of the least cost over ``solved`` (per ε: the costs
+    (n_lags,) and parameters (n_lags, 8) of :func:`_encoder_equations`); None when every cost is infinite."""
+    costs = np.array([c for c, _ in solved])
+    i, j = np.unravel_index(int(np.argmin(costs)), costs.shape)
+    if not math.isfinite(costs[i, j]):
+        return None
+    return (float(costs[i, j]), solved[i][1][j]), int(i), int(j)
 
 
 def load_origin_rad(problem: ResidualProblem, start: EncoderStart | None) -> float:
@@ -410,7 +434,7 @@ def load_origin_rad(problem: ResidualProblem, start: EncoderStart | None) -> flo
     and stiffness: the centred gap gave none)."""
     from scipy.optimize import minimize
 
-    solve = _encoder_equations(problem)
+    solve = _scalar(_encoder_equations(problem, np.array([start.lag_s if start is not None else 0.0])))
     h = math.radians(_ORIGIN_PROBE_DEG)
     c = problem.spline
     z = np.concatenate((c[:, 3], [c[-1].sum()])) - problem.load_position
@@ -437,10 +461,11 @@ def load_origin_rad(problem: ResidualProblem, start: EncoderStart | None) -> flo
     return float(res.x[0]) if float(res.fun) < 0.5 * centred else 0.0
 
 
-def _encoder_equations(problem: ResidualProblem) -> Any:
+def _encoder_equations(problem: ResidualProblem, lags_s: NDArray[np.float64]) -> Any:
     """``solve(ε, shift=0)``: the encoders' equations of motion at gap ε [rad] with the measured twist
-    shifted by ``shift`` [rad] (:func:`load_encoder_start`): (RMS residual [N·m], inf when no inertia or
-    stiffness is positive; the parameters (J_m, B_m, J_l, B_l, K, D, F_m, F_l))."""
+    shifted by ``shift`` [rad], τ_ref behind a current loop of each time constant in ``lags_s`` [s]
+    (:func:`load_encoder_start`): (RMS residuals [N·m] (n_lags,), inf where an inertia or the stiffness is
+    not positive; the parameters (J_m, B_m, J_l, B_l, K, D, F_m, F_l) (n_lags, 8))."""
     fs = problem.sample_rate_hz
     c = problem.spline
     x = np.concatenate((c[:, 3], [c[-1].sum()]))
@@ -451,14 +476,15 @@ def _encoder_equations(problem: ResidualProblem) -> Any:
     vl_raw = (xl[2:] - xl[:-2]) * (0.5 * fs)
     vl = lp(np.ascontiguousarray(vl_raw))
     sl = lp(np.ascontiguousarray(np.tanh(vl_raw / problem.velocity_scale_rad_s)))
-    am, vm, tq = problem.acceleration_f, problem.velocity_f, problem.torque_f
+    am, vm = problem.acceleration_f, problem.velocity_f
     sm = problem.coulomb_f if problem.coulomb_f is not None else np.zeros_like(am)
     n = am.size
     inner = slice(4, n - 4)
     zero = np.zeros(n)
-    b = np.concatenate((tq[inner], zero[inner]))
+    # the motor block's right-hand sides, one per time constant (the load block's are zero)
+    b = np.stack([problem.lagged_torque_f(float(t))[inner] for t in lags_s], axis=1)
 
-    def solve(eps: float, shift: float = 0.0) -> tuple[float, NDArray[np.float64]]:
+    def solve(eps: float, shift: float = 0.0) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         y = _deadzone(z - shift if shift else z, eps)
         Y = lp(np.ascontiguousarray((y[:-2] + 4.0 * y[1:-1] + y[2:]) / 6.0))
         Yd = lp(np.ascontiguousarray((y[2:] - y[:-2]) * (0.5 * fs)))
@@ -466,12 +492,24 @@ def _encoder_equations(problem: ResidualProblem) -> Any:
                        np.stack((zero, zero, -al, -vl, Y, Yd, zero, -sl), axis=1)[inner]))
         sc = np.sqrt(np.sum(A * A, axis=0))
         sc[sc == 0.0] = 1.0
-        th = np.linalg.lstsq(A / sc, b, rcond=None)[0] / sc
-        r = (A @ th - b)[: n - 8]
-        ok = th[0] > 0 and th[2] > 0 and th[4] > 0
-        return (float(np.sqrt(np.mean(r * r))) if ok else math.inf), th
+        A /= sc
+        # the normal equations of the unit columns, one solve for every right-hand side (least squares: a
+        # column of zeros, ε beyond the twist's range, gets 0); a start needs no more than their accuracy
+        th = np.linalg.lstsq(A.T @ A, A[: n - 8].T @ b, rcond=None)[0]
+        r = A[: n - 8] @ th - b
+        th /= sc[:, None]
+        ok = (th[0] > 0) & (th[2] > 0) & (th[4] > 0)
+        return np.where(ok, np.sqrt(np.mean(r * r, axis=0)), math.inf), th.T
 
     return solve
+
+
+def _scalar(solve: Any) -> Any:
+    """One time constant's ``solve`` of :func:`_encoder_equations`: (cost [N·m], parameters (8,))."""
+    def one(eps: float, shift: float = 0.0) -> tuple[float, NDArray[np.float64]]:
+        costs, th = solve(eps, shift)
+        return float(costs[0]), th[0]
+    return one
 
 
 def measured_band_hz(frd: FRD, level: float = 0.5) -> tuple[float, float]:
