@@ -985,7 +985,8 @@ def torque_residual(problem: ResidualProblem, J_m: float, J_l: float, B_m: float
     sim = simulate_load(problem, J_l, B_l, K, D, epsilon_rad, coulomb_load_nm, motor=motor, observer=observer)
     vec = _vector(problem, sim, K, load_weight_nm_per_rad)
     res = sosfiltfilt(problem.sos, sim.residual)
-    cost = float(np.sqrt(np.mean(vec * vec)))
+    with np.errstate(over="ignore"):  # a diverged simulation's cost is inf, as it should be
+        cost = float(np.sqrt(np.mean(vec * vec)))
     return Residual(residual=res, vector=vec, cost=cost, simulation=sim)
 
 
