@@ -76,3 +76,40 @@ def test_coulomb_friction_split_wrongly_between_motor_and_load_is_split_again() 
     assert res.friction is not None
     assert res.friction.get("motor_nm") == pytest.approx(m.coulomb_motor_nm, rel=0.1)
     assert res.friction.get("load_nm") == pytest.approx(m.coulomb_load_nm, rel=0.3)
+
+
+def _encoders_start(seed: int, index: int):  # type: ignore[no-untyped-def]
+    """The member and the encoders' start on the residual problem the hybrid pipeline prepares first."""
+    import math
+
+    from commission.ident.options import IdentificationOptions
+    from commission.ident.residual import prepare_residual
+    from commission.ident.start import load_encoder_start
+    from sim_drive.family import Sensors, member
+
+    m = member(seed, index)
+    assert m.sensors is Sensors.LOAD_ENCODER
+    rec, opt = m.simulate(), IdentificationOptions()
+    problem = prepare_residual(rec.torque_ref, rec.sample_rate_hz, motor_position=rec.motor_position,
+                               cutoff_hz=min(opt.residual_cutoff_hz, 0.4 * rec.sample_rate_hz),
+                               load_position=rec.load_position,
+                               velocity_scale_rad_s=opt.coulomb_velocity_scale_rad_s)
+    return m, load_encoder_start(problem, math.radians(16.0), current_loop=True)
+
+
+@pytest.mark.parametrize("seed, index", [(24, 44), (22, 2)])
+def test_the_encoders_start_takes_a_current_loop_only_where_the_record_shows_one(seed: int, index: int) -> None:
+    # 24:044: a 419 Hz loop under a 714 Hz chirp. Read as an ideal one, no gap gave positive K and J_l: no start,
+    # the scan's J_l ×1e-3 took 1,420 s of fit, flagged. 22:002: an ideal loop and a 1.7° gap, where a lag at the
+    # grid's top (3 ms) stood in for the rigid body's J/B and the start came out at ε = 0, K ×1e-3
+    import math
+
+    m, start = _encoders_start(seed, index)
+    assert start is not None
+    lag_s = 1.0 / (2.0 * math.pi * m.current_loop_bandwidth_hz) if m.current_loop_bandwidth_hz else 0.0
+    # measured: 24:044 ε +0.001°, J_m +2 %, J_l −15 %, K −10 %, T_c −4 %; 22:002 ε +0.002°, J_m −8 %, J_l −11 %,
+    # K −7 %, T_c 0
+    assert math.degrees(start.epsilon_rad) == pytest.approx(m.epsilon_deg, abs=0.01)
+    for p in ("J_m", "J_l", "K"):
+        assert getattr(start.parameters, p) == pytest.approx(getattr(m.two_mass, p), rel=0.25), p
+    assert start.lag_s == pytest.approx(lag_s, rel=0.1, abs=5e-6)

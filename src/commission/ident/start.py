@@ -383,7 +383,8 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads
     problem. With ``current_loop`` τ is τ_ref behind a first-order loop whose time constant T_c is
     scanned with ε (:data:`_LAG_GRID_S`, then refined; each T_c one more right-hand side of the same
     problem): a loop near the band's top leaves τ_ref a poor stand-in for τ, and the stiffness and load
-    inertia that would explain the difference come out negative. Noise in the measured twist biases the
+    inertia that would explain the difference come out negative. A best T_c at the grid's top is not a
+    loop's (it mimics a rigid body's J/B) and is not used. Noise in the measured twist biases the
     damping (errors in variables), so this is the estimator's start, not its answer. None when no
     (ε, T_c) gives positive inertias and stiffness. The ε are shared out over ``threads`` (each its own
     problem: the same answer with any number).
@@ -393,7 +394,13 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads
     lags = np.concatenate(([0.0], _LAG_GRID_S)) if current_loop and problem.torque_ref is not None else np.zeros(1)
     grid = np.concatenate(([0.0], np.geomspace(math.radians(0.005), max(epsilon_top_rad, math.radians(0.01)), 40)))
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        best = _best_of(list(pool.map(_encoder_equations(problem, lags), grid)))
+        solved = list(pool.map(_encoder_equations(problem, lags), grid))
+        best = _best_of(solved)
+        if best is not None and best[2] == lags.size - 1:
+            # a cost still falling at the longest time constant is a rigid body's J/B (the lag standing in for
+            # its inertia, the twist's terms dropped), not a current loop: the loop is not determined, τ_ref used
+            lags = lags[:1]
+            best = _best_of([(c[:1], th[:1]) for c, th in solved])
         if best is None:
             return None
         i, j = best[1], best[2]
