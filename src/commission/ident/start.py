@@ -383,8 +383,8 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads
     problem. With ``current_loop`` τ is τ_ref behind a first-order loop whose time constant T_c is
     scanned with ε (:data:`_LAG_GRID_S`, then refined; each T_c one more right-hand side of the same
     problem): a loop near the band's top leaves τ_ref a poor stand-in for τ, and the stiffness and load
-    inertia that would explain the difference come out negative. A best T_c at the grid's top is not a
-    loop's (it mimics a rigid body's J/B) and is not used. Noise in the measured twist biases the
+    inertia that would explain the difference come out negative. T_c is the likeliest local minimum
+    below the grid's top (:func:`_loop_index`): a cost still falling there mimics a rigid body's J/B. Noise in the measured twist biases the
     damping (errors in variables), so this is the estimator's start, not its answer. None when no
     (ε, T_c) gives positive inertias and stiffness. The ε are shared out over ``threads`` (each its own
     problem: the same answer with any number).
@@ -395,15 +395,11 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads
     grid = np.concatenate(([0.0], np.geomspace(math.radians(0.005), max(epsilon_top_rad, math.radians(0.01)), 40)))
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
         solved = list(pool.map(_encoder_equations(problem, lags), grid))
-        best = _best_of(solved)
-        if best is not None and best[2] == lags.size - 1:
-            # a cost still falling at the longest time constant is a rigid body's J/B (the lag standing in for
-            # its inertia, the twist's terms dropped), not a current loop: the loop is not determined, τ_ref used
-            lags = lags[:1]
-            best = _best_of([(c[:1], th[:1]) for c, th in solved])
+        j = _loop_index(np.array([c for c, _ in solved]).min(axis=0))
+        best = _best_of([(c[j:j + 1], th[j:j + 1]) for c, th in solved])
         if best is None:
             return None
-        i, j = best[1], best[2]
+        i = best[1]
         fine = np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)], 11)
         fine_lags = (np.linspace(lags[max(j - 1, 0)], lags[min(j + 1, lags.size - 1)], 11) if lags.size > 1
                      else lags)
@@ -416,6 +412,16 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads
     p = TwoMassParameters(J_m=J_m, J_l=J_l, B_m=max(B_m, 1e-3 * S), B_l=max(B_l, 1e-3 * S), K=K,
                           D=max(D, 1e-6 * K))
     return EncoderStart(p, float(eps), max(F_m, 0.0), max(F_l, 0.0), cost, float(lag))
+
+
+def _loop_index(cost: NDArray[np.float64]) -> int:
+    """The index of the current loop's time constant in the lag grid from the least cost at each (n_lags,):
+    the lowest local minimum below the grid's top, 0 where there is none. A cost still falling at the top is
+    a rigid body's J/B (the lag standing in for the inertia, the twist's terms dropped), not a loop's."""
+    n = cost.size
+    minima = [j for j in range(n - 1) if math.isfinite(cost[j]) and cost[j] <= cost[j + 1]
+              and (j == 0 or cost[j] <= cost[j - 1])]
+    return min(minima, key=lambda j: cost[j]) if minima else 0
 
 
 def _best_of(solved: list[tuple[NDArray[np.float64], NDArray[np.float64]]]
