@@ -1,8 +1,10 @@
-"""Family records (sim_drive.family) the identifier once got wrong or flagged, identified end to end: each
-test names the member and what went wrong. Apart from test_hybrid.py so that ``--dist loadfile`` runs them on
-another worker."""
+"""Family records (sim_drive.family) the identifier once got wrong or flagged, identified end to end (or, where
+its start went wrong, started): each test names the member and what went wrong. Apart from test_hybrid.py so
+that ``--dist loadfile`` runs them on another worker."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import pytest
 
@@ -78,7 +80,7 @@ def test_coulomb_friction_split_wrongly_between_motor_and_load_is_split_again() 
     assert res.friction.get("load_nm") == pytest.approx(m.coulomb_load_nm, rel=0.3)
 
 
-def _encoders_start(seed: int, index: int):  # type: ignore[no-untyped-def]
+def _encoders_start(seed: int, index: int) -> tuple[Any, Any]:
     """The member and the encoders' start on the residual problem the hybrid pipeline prepares first."""
     import math
 
