@@ -384,14 +384,15 @@ def load_encoder_start(problem: ResidualProblem, epsilon_top_rad: float, threads
     scanned with ε (:data:`_LAG_GRID_S`, then refined; each T_c one more right-hand side of the same
     problem): a loop near the band's top leaves τ_ref a poor stand-in for τ, and the stiffness and load
     inertia that would explain the difference come out negative. T_c is the likeliest local minimum
-    below the grid's top (:func:`_loop_index`): a cost still falling there mimics a rigid body's J/B. Noise in the measured twist biases the
-    damping (errors in variables), so this is the estimator's start, not its answer. None when no
-    (ε, T_c) gives positive inertias and stiffness. The ε are shared out over ``threads`` (each its own
-    problem: the same answer with any number).
+    below the grid's top (:func:`_loop_index`): a cost still falling there mimics a rigid body's J/B.
+    Noise in the measured twist biases the damping (errors in variables), so this is the estimator's
+    start, not its answer. None when no (ε, T_c) gives positive inertias and stiffness. The ε are shared
+    out over ``threads`` (each its own problem: the same answer with any number).
     """
     if problem.load_position is None:
         return None
-    lags = np.concatenate(([0.0], _LAG_GRID_S)) if current_loop and problem.torque_ref is not None else np.zeros(1)
+    loop = current_loop and problem.torque_ref is not None
+    lags = np.concatenate(([0.0], _LAG_GRID_S)) if loop else np.zeros(1)
     grid = np.concatenate(([0.0], np.geomspace(math.radians(0.005), max(epsilon_top_rad, math.radians(0.01)), 40)))
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
         solved = list(pool.map(_encoder_equations(problem, lags), grid))
