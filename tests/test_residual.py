@@ -229,6 +229,46 @@ def test_load_simulation_with_stiff_coulomb_friction_matches_an_implicit_solver(
     assert np.max(np.abs(sim.load_position - ref.y[0])) < 1e-5 * motion
 
 
+@pytest.mark.parametrize(("epsilon_deg", "coulomb_load_nm"), [(0.4, 0.05), (2.0, 0.05), (2.0, 0.2)])
+def test_load_friction_beyond_rk4s_reach_matches_an_implicit_solver(epsilon_deg, coulomb_load_nm):
+    # v_s = 1e-5 rad/s puts the smooth sign's rate hundreds of times above the sample rate, beyond
+    # the RK4 sub-steps' cap (a fit's load inertia driven towards zero does that): the load sticks
+    # and slips, in the gap and in contact. Reference: scipy's Radau on the dead-zone spring.
+    from scipy.integrate import solve_ivp
+
+    from commission.ident.residual import _MAX_STIFF_PARTS, simulate_load
+
+    vs = 1e-5
+    eps = math.radians(epsilon_deg)
+    tau = 0.3 * np.sin(2 * np.pi * 20.0 * np.arange(1600) / FS)  # the motor crosses the gap 16 times
+    r = Plant(PlantParameters(**TRUE, epsilon_deg=epsilon_deg, seed=3), FS).run_torque(tau)
+    p = prepare_residual(r.torque_ref, FS, motor_position=r.motor_position, cutoff_hz=400.0,
+                         velocity_scale_rad_s=vs)
+    sim = simulate_load(p, TRUE["J_l"], TRUE["B_l"], TRUE["K"], TRUE["D"], eps, coulomb_load_nm)
+    c, Ts = p.spline, 1.0 / FS
+    kj, dj, bj = (TRUE[k] / TRUE["J_l"] for k in ("K", "D", "B_l"))
+    cj = coulomb_load_nm / TRUE["J_l"]
+    assert cj / vs * Ts / 2 > 2 * _MAX_STIFF_PARTS
+
+    def rhs(t: float, y: np.ndarray) -> list[float]:
+        k = min(int(t / Ts), c.shape[0] - 1)
+        s = t / Ts - k
+        a3, a2, a1, a0 = c[k]
+        xm, vm = ((a3 * s + a2) * s + a1) * s + a0, ((3 * a3 * s + 2 * a2) * s + a1) / Ts
+        z = xm - y[0]
+        spring = kj * (z - math.copysign(eps, z)) + dj * (vm - y[1]) if abs(z) > eps else 0.0
+        return [y[1], spring - bj * y[1] - cj * math.tanh(y[1] / vs)]
+
+    n = c.shape[0]
+    ref = solve_ivp(rhs, (0.0, n * Ts), [sim.load_position[0], sim.load_velocity[0]], method="Radau",
+                    t_eval=np.arange(n + 1) * Ts, rtol=1e-9, atol=1e-13, max_step=Ts)
+    assert ref.success
+    assert np.mean(np.abs(ref.y[1]) < 5 * vs) > 0.05  # it sticks
+    assert sim.events >= 6
+    motion = float(np.ptp(ref.y[0]))
+    assert np.max(np.abs(sim.load_position - ref.y[0])) < 3e-4 * motion
+
+
 def test_contact_steps_are_exact_on_a_stiff_light_load():
     # In contact (no backlash, no load friction) each sample interval is the exact solution of the
     # linear ODE driven by the cubic motor interpolant (contact_map). Reference: DOP853 at

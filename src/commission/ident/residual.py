@@ -92,10 +92,16 @@ _STIFF_STEP = 2.0
 _SATURATED = 25.0
 #: Partial steps per sample interval before the rest is finished in the current mode.
 _MAX_PARTS = 200
-#: Most sub-steps per interval in the stiff zone of the load's smooth sign. Only parameters far
-#: from any plant need more (F_cl/J_l ≫ the plant's: a load inertia driven to zero by a fit); there
-#: the simulation may go unstable, and the fit steps back from its non-finite residual.
+#: Most RK4 sub-steps per interval in the stiff zone of the load's smooth sign. Only parameters far
+#: from any plant need more (F_cl/J_l ≫ the plant's: a load inertia driven to zero by a fit, the
+#: smooth sign's time constant below Ts/128); there the step is L-stable instead (:func:`_sdirk_gap`,
+#: :func:`_sdirk_contact`), one per interval: the load sticks as the hard friction would.
 _MAX_STIFF_PARTS = 64
+#: γ of the two-stage, stiffly accurate, L-stable SDIRK method (order 2; Alexander 1977).
+_SDIRK_GAMMA = 1.0 - 1.0 / math.sqrt(2.0)
+_TANH_ROOT_ITERATIONS = 60
+#: L-stable sub-steps per contact step: as many as RK4 takes in the gap.
+_SDIRK_PARTS = 4
 
 
 # --- compiled core (module level, so that numba's cache=True works) ----------
@@ -131,6 +137,58 @@ def _smooth_sign(x: float) -> float:
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _tanh_root(a: float, b: float, ivs: float, r: float) -> float:
+    """The root V of a·V + b·tanh(V·ivs) = r (a > 0, b ≥ 0: one root, in [(r − b)/a, (r + b)/a]),
+    by Newton's method kept inside the bracket (bisection where a step leaves it)."""
+    if b == 0.0:
+        return r / a
+    lo = (r - b) / a
+    hi = (r + b) / a
+    v = r / (a + b * ivs)  # the root of the linearisation at 0
+    if not lo < v < hi:
+        v = 0.5 * (lo + hi)
+    for _ in range(_TANH_ROOT_ITERATIONS):
+        t = _smooth_sign(v * ivs)
+        g = a * v + b * t - r
+        if g > 0.0:
+            hi = v
+        elif g < 0.0:
+            lo = v
+        else:
+            return v
+        vn = v - g / (a + b * ivs * (1.0 - t * t))
+        if not lo < vn < hi:
+            vn = 0.5 * (lo + hi)
+        if abs(vn - v) <= 1e-15 * abs(v) + 1e-300 or hi - lo <= 1e-15 * abs(v):
+            return vn
+        v = vn
+    return v
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _sdirk_gap(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: float,
+               Ts: float) -> tuple[float, float]:
+    """:func:`_gap_state` by the L-stable two-stage SDIRK method, on sub-steps of at most Ts/4:
+    each stage is one scalar equation in the load speed (:func:`_tanh_root`)."""
+    n = int(math.ceil(4.0 * ts / Ts - 1e-9))
+    if n < 1:
+        n = 1
+    h = ts / n
+    hg = h * _SDIRK_GAMMA
+    a = 1.0 + hg * decay
+    b = hg * cj
+    x = xl
+    v = vl
+    for _ in range(n):
+        v1 = _tanh_root(a, b, ivs, v)
+        f1 = (v1 - v) / hg
+        v2 = _tanh_root(a, b, ivs, v + (h - hg) * f1)
+        x = x + (h - hg) * v1 + hg * v2
+        v = v2
+    return x, v
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _gap_state(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: float,
                Ts: float) -> tuple[float, float]:
     """Load position and velocity after ts seconds in the gap.
@@ -150,7 +208,9 @@ def _gap_state(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: fl
     # stiff zone of the smooth sign: |v̇| ≤ decay·|v| + cj bounds how near zero v can get
     rate_ts = cj * ivs * ts / _STIFF_STEP
     if rate_ts > n and abs(vl) * ivs < _STIFF_ZONE + (decay * abs(vl) + cj) * ts * ivs:
-        n = min(int(math.ceil(rate_ts)), _MAX_STIFF_PARTS)
+        if rate_ts > _MAX_STIFF_PARTS:
+            return _sdirk_gap(xl, vl, decay, ts, cj, ivs, Ts)
+        n = int(math.ceil(rate_ts))
     h = ts / n
     x = xl
     v = vl
@@ -214,6 +274,46 @@ def _rk4_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float,
     pe = side * (xc - xn - side * eps)
     dpe = side * (vc - vn) * Ts
     return xn, vn, i0, i1, pe, dpe
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _sdirk_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float, xl: float, vl: float,
+                   side: float, eps: float, kj: float, dj: float, bj: float, cj: float, ivs: float
+                   ) -> tuple[float, float, float, float, float, float]:
+    """:func:`_rk4_contact` by the L-stable two-stage SDIRK method on _SDIRK_PARTS equal sub-steps, for
+    friction too stiff for RK4 (:data:`_MAX_STIFF_PARTS`): each stage's position is linear in its speed,
+    so a stage is one scalar equation (:func:`_tanh_root`); the quadratures integrate the cubic
+    Hermite of y on each sub-step."""
+    ds = (se - s) / _SDIRK_PARTS
+    h = ds * Ts
+    hg = h * _SDIRK_GAMMA
+    a = 1.0 + hg * (dj + bj) + hg * hg * kj
+    b = hg * cj
+    xa, da = _motor(c, k, s)
+    y0 = xa - xl - side * eps
+    dy0 = (da - vl * Ts) * ds
+    i0 = 0.0
+    i1 = 0.0
+    sa = s
+    for j in range(_SDIRK_PARTS):
+        sb = se if j == _SDIRK_PARTS - 1 else s + (j + 1) * ds
+        x1m, d1m = _motor(c, k, sa + _SDIRK_GAMMA * ds)
+        xc, dc = _motor(c, k, sb)
+        v1 = _tanh_root(a, b, ivs, vl + hg * (kj * (x1m - xl - side * eps) + dj * d1m / Ts))
+        f1 = (v1 - vl) / hg
+        p = xl + (h - hg) * v1  # X2 = p + hg·V2
+        vl = _tanh_root(a, b, ivs, vl + (h - hg) * f1 + hg * (kj * (xc - p - side * eps) + dj * dc / Ts))
+        xl = p + hg * vl
+        y1 = xc - xl - side * eps
+        dy1 = (dc - vl * Ts) * ds
+        j0 = 0.5 * (y0 + y1) + (dy0 - dy1) / 12.0
+        j1 = 0.15 * y0 + dy0 / 30.0 + 0.35 * y1 - 0.05 * dy1  # ∫₀¹ u·y du
+        i0 += ds * j0
+        i1 += ds * (sa * j0 + ds * j1)
+        y0 = y1
+        dy0 = dy1
+        sa = sb
+    return xl, vl, i0, i1, side * y0, side * (dc - vl * Ts)
 
 
 def contact_map(Ts: float, kj: float, dj: float, bj: float) -> NDArray[np.float64]:
@@ -283,13 +383,14 @@ def _exact_contact(cm: NDArray[np.float64], c: NDArray[np.float64], k: int, Ts: 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _contact_step(cs: NDArray[np.float64], s: float, Ts: float, xl: float, vl: float, side: float, eps: float,
                   kj: float, dj: float, bj: float, cj: float, ivs: float, cm: NDArray[np.float64], friction: bool
-                  ) -> tuple[float, float, float, float, float, float, float]:
+                  ) -> tuple[float, float, float, float, float, float, float, bool]:
     """One step in contact from k+s (the interval's motor ``cs``, (1, 4)) to its end, exact or RK4, with the
     quadratures of y and s·y; cut into ceil(rate·h/_STIFF_STEP) parts where the load speed is, or may get,
-    within _STIFF_ZONE·v_s of zero (the stiff zone of the Coulomb smooth sign, rate cj·ivs).
+    within _STIFF_ZONE·v_s of zero (the stiff zone of the Coulomb smooth sign, rate cj·ivs); one L-stable
+    step (:func:`_sdirk_contact`) where that would take more than _MAX_STIFF_PARTS.
 
     Returns (x_l, v_l, ∫y ds, ∫s·y ds, the step's end s, penetration and its rate there
-    (:func:`_rk4_contact`))."""
+    (:func:`_rk4_contact`), whether the step was the L-stable one)."""
     send = 1.0
     if cj != 0.0:
         rate_h = cj * ivs * (1.0 - s) * Ts / _STIFF_STEP
@@ -297,33 +398,38 @@ def _contact_step(cs: NDArray[np.float64], s: float, Ts: float, xl: float, vl: f
             xa, da = _motor(cs, 0, s)
             _, a0 = _accel(xa, da / Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
             if abs(vl) * ivs < _STIFF_ZONE + abs(a0) * (1.0 - s) * Ts * ivs:
-                send = s + (1.0 - s) / min(math.ceil(rate_h), _MAX_STIFF_PARTS)
+                if rate_h > _MAX_STIFF_PARTS:
+                    xn, vn, i0, i1, p1, dp1e = _sdirk_contact(cs, 0, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj,
+                                                              cj, ivs)
+                    return xn, vn, i0, i1, 1.0, p1, dp1e, True
+                send = s + (1.0 - s) / math.ceil(rate_h)
     if send == 1.0 and s == 0.0:
         if not friction:  # the common case: a whole interval, linear
             xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, cs, 0, Ts, xl, vl, side, eps, 0.0)
-            return xn, vn, i0, i1, send, p1, dp1e
+            return xn, vn, i0, i1, send, p1, dp1e, False
         if abs(vl) * ivs > _SATURATED:
             # the load moves fast enough that the smooth sign is ±1 in float64 over the
             # whole interval (checked at its end): a constant force, the step is exact
             sg = 1.0 if vl > 0.0 else -1.0
             xn, vn, i0, i1, p1, dp1e = _exact_contact(cm, cs, 0, Ts, xl, vl, side, eps, sg * cj / kj)
             if vn * sg * ivs > _SATURATED:
-                return xn, vn, i0, i1, send, p1, dp1e
+                return xn, vn, i0, i1, send, p1, dp1e, False
     if send == 1.0:  # the interval's end as a constant: a few % faster
         xn, vn, i0, i1, p1, dp1e = _rk4_contact(cs, 0, s, 1.0, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
     else:
         xn, vn, i0, i1, p1, dp1e = _rk4_contact(cs, 0, s, send, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
-    return xn, vn, i0, i1, send, p1, dp1e
+    return xn, vn, i0, i1, send, p1, dp1e, False
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _separation(cs: NDArray[np.float64], s: float, send: float, Ts: float, xl: float, vl: float, side: float,
                 eps: float, kj: float, dj: float, bj: float, cj: float, ivs: float, xn: float, vn: float, i0: float,
-                i1: float, p1: float, dp1e: float) -> tuple[bool, float, float, float, float, float]:
+                i1: float, p1: float, dp1e: float, implicit: bool) -> tuple[bool, float, float, float, float, float]:
     """Whether the contact step from k+s to k+send (ending at xn, vn, i0, i1, penetration p1 and its rate
     dp1e) separates: the penetration p = side·y scanned on the step's cubic Hermite interpolant (interior
     points for grazes), bisected, then polished by Newton steps on the actual RK4 step length, so that
     the impact torque D·ẏ is switched off where the integrated trajectory really reaches the boundary.
+    ``implicit``: the step was :func:`_sdirk_contact`'s, and so are the polishing steps.
     Returns (separated, the step's end, x_l, v_l, ∫y ds, ∫s·y ds), the step unchanged if not."""
     h = (send - s) * Ts
     xa, da = _motor(cs, 0, s)
@@ -352,15 +458,21 @@ def _separation(cs: NDArray[np.float64], s: float, send: float, Ts: float, xl: f
         else:
             lo = mid
     se = s + hi * (send - s)
-    # Newton on the actual RK4 step length
-    xn, vn, i0, i1, pe, dpe = _rk4_contact(cs, 0, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+    # Newton on the actual step length
+    if implicit:
+        xn, vn, i0, i1, pe, dpe = _sdirk_contact(cs, 0, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+    else:
+        xn, vn, i0, i1, pe, dpe = _rk4_contact(cs, 0, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
     for _ in range(4):
         if abs(pe) <= 1e-15 or dpe == 0.0:
             break
         sn = se - pe / dpe
         if not (s < sn <= send):
             break
-        xq, vq, iq0, iq1, pq, dpq = _rk4_contact(cs, 0, s, sn, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+        if implicit:
+            xq, vq, iq0, iq1, pq, dpq = _sdirk_contact(cs, 0, s, sn, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+        else:
+            xq, vq, iq0, iq1, pq, dpq = _rk4_contact(cs, 0, s, sn, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
         if abs(pq) >= abs(pe):
             break
         se, xn, vn, i0, i1, pe, dpe = sn, xq, vq, iq0, iq1, pq, dpq
@@ -435,12 +547,12 @@ def _interval(cs: NDArray[np.float64], Ts: float, xl: float, vl: float, side: fl
         if guard > _MAX_PARTS:  # pathological chattering: finish the step in the current mode
             break
         if side != 0.0:
-            xn, vn, i0, i1, send, p1, dp1e = _contact_step(cs, s, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs, cm,
-                                                           friction)
+            xn, vn, i0, i1, send, p1, dp1e, implicit = _contact_step(cs, s, Ts, xl, vl, side, eps, kj, dj, bj,
+                                                                     cj, ivs, cm, friction)
             separated = False
             if eps > 0.0:
                 separated, send, xn, vn, i0, i1 = _separation(cs, s, send, Ts, xl, vl, side, eps, kj, dj, bj, cj,
-                                                              ivs, xn, vn, i0, i1, p1, dp1e)
+                                                              ivs, xn, vn, i0, i1, p1, dp1e, implicit)
             i0_sum += i0
             i1_sum += i1
             xl = xn
