@@ -37,8 +37,8 @@ function of ε and the load parameters, as finite-difference Jacobians need.
 Optional terms: motor Coulomb friction, a regressor linear in F_cm (``ResidualProblem.coulomb``,
 the triangle average of tanh(ẋ_m/v_s) by Gauss–Legendre); load Coulomb friction F_cl·tanh(ẋ_l/v_s)
 in the load simulation, where explicit RK4 steps in the smooth sign's stiff zone are cut so that
-rate·h stays below RK4's stability limit (:data:`_STIFF_STEP`) and v_s stays the stated one; a
-first-order current-loop lag T_c·τ̇ = τ_ref − τ (:func:`lagged_torque`, exact for a held τ_ref).
+rate·h stays below RK4's stability limit (:data:`_STIFF_STEP`) and v_s stays the stated one (beyond
+:data:`_MAX_STIFF_PARTS` sub-steps, an L-stable step instead); a first-order current-loop lag T_c·τ̇ = τ_ref − τ (:func:`lagged_torque`, exact for a held τ_ref).
 
 Filtering. The second difference of a quantised position is blue noise, so the residual is
 low-passed zero-phase (Butterworth, as ``scipy.signal.sosfiltfilt``) and decimated to about twice
