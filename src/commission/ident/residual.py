@@ -38,7 +38,8 @@ Optional terms: motor Coulomb friction, a regressor linear in F_cm (``ResidualPr
 the triangle average of tanh(ẋ_m/v_s) by Gauss–Legendre); load Coulomb friction F_cl·tanh(ẋ_l/v_s)
 in the load simulation, where explicit RK4 steps in the smooth sign's stiff zone are cut so that
 rate·h stays below RK4's stability limit (:data:`_STIFF_STEP`) and v_s stays the stated one (beyond
-:data:`_MAX_STIFF_PARTS` sub-steps, an L-stable step instead); a first-order current-loop lag T_c·τ̇ = τ_ref − τ (:func:`lagged_torque`, exact for a held τ_ref).
+:data:`_MAX_STIFF_PARTS` sub-steps, L-stable steps instead); a first-order current-loop lag
+T_c·τ̇ = τ_ref − τ (:func:`lagged_torque`, exact for a held τ_ref).
 
 Filtering. The second difference of a quantised position is blue noise, so the residual is
 low-passed zero-phase (Butterworth, as ``scipy.signal.sosfiltfilt``) and decimated to about twice
@@ -90,15 +91,16 @@ _STIFF_STEP = 2.0
 #: 25, below half an ulp) at both ends of a contact interval: the load friction is then a
 #: constant force there and the interval is stepped exactly (:func:`_exact_contact`).
 _SATURATED = 25.0
-#: Partial steps per sample interval before the rest is finished in the current mode.
+#: Partial steps per sample interval; past them the interval ends where it stands (chattering).
 _MAX_PARTS = 200
 #: Most RK4 sub-steps per interval in the stiff zone of the load's smooth sign. Only parameters far
 #: from any plant need more (F_cl/J_l ≫ the plant's: a load inertia driven to zero by a fit, the
-#: smooth sign's time constant below Ts/128); there the step is L-stable instead (:func:`_sdirk_gap`,
-#: :func:`_sdirk_contact`), one per interval: the load sticks as the hard friction would.
+#: smooth sign's time constant below Ts/128); there the steps are L-stable instead (:func:`_sdirk_gap`,
+#: :func:`_sdirk_contact`, four sub-steps per interval): the load sticks as hard friction would.
 _MAX_STIFF_PARTS = 64
 #: γ of the two-stage, stiffly accurate, L-stable SDIRK method (order 2; Alexander 1977).
 _SDIRK_GAMMA = 1.0 - 1.0 / math.sqrt(2.0)
+#: Newton steps at most per stage equation (bracketed: it converges in a handful).
 _TANH_ROOT_ITERATIONS = 60
 #: L-stable sub-steps per contact step: as many as RK4 takes in the gap.
 _SDIRK_PARTS = 4
@@ -386,8 +388,8 @@ def _contact_step(cs: NDArray[np.float64], s: float, Ts: float, xl: float, vl: f
                   ) -> tuple[float, float, float, float, float, float, float, bool]:
     """One step in contact from k+s (the interval's motor ``cs``, (1, 4)) to its end, exact or RK4, with the
     quadratures of y and s·y; cut into ceil(rate·h/_STIFF_STEP) parts where the load speed is, or may get,
-    within _STIFF_ZONE·v_s of zero (the stiff zone of the Coulomb smooth sign, rate cj·ivs); one L-stable
-    step (:func:`_sdirk_contact`) where that would take more than _MAX_STIFF_PARTS.
+    within _STIFF_ZONE·v_s of zero (the stiff zone of the Coulomb smooth sign, rate cj·ivs); the L-stable
+    step (:func:`_sdirk_contact`) to the end where that would take more than _MAX_STIFF_PARTS.
 
     Returns (x_l, v_l, ∫y ds, ∫s·y ds, the step's end s, penetration and its rate there
     (:func:`_rk4_contact`), whether the step was the L-stable one)."""
@@ -544,7 +546,7 @@ def _interval(cs: NDArray[np.float64], Ts: float, xl: float, vl: float, side: fl
     guard = 0
     while s < 1.0:
         guard += 1
-        if guard > _MAX_PARTS:  # pathological chattering: finish the step in the current mode
+        if guard > _MAX_PARTS:  # pathological chattering: the rest of the interval is not integrated
             break
         if side != 0.0:
             xn, vn, i0, i1, send, p1, dp1e, implicit = _contact_step(cs, s, Ts, xl, vl, side, eps, kj, dj, bj,
