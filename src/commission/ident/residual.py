@@ -169,12 +169,9 @@ def _tanh_root(a: float, b: float, ivs: float, r: float) -> float:
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _sdirk_gap(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: float,
-               Ts: float) -> tuple[float, float]:
-    """:func:`_gap_state` by the L-stable two-stage SDIRK method, on sub-steps of at most Ts/4:
-    each stage is one scalar equation in the load speed (:func:`_tanh_root`)."""
-    n = int(math.ceil(4.0 * ts / Ts - 1e-9))
-    if n < 1:
-        n = 1
+               n: int) -> tuple[float, float]:
+    """:func:`_gap_state` by the L-stable two-stage SDIRK method on n equal sub-steps: each stage is
+    one scalar equation in the load speed (:func:`_tanh_root`)."""
     h = ts / n
     hg = h * _SDIRK_GAMMA
     a = 1.0 + hg * decay
@@ -197,7 +194,8 @@ def _gap_state(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: fl
 
     Without load Coulomb friction (cj = 0) the free viscous decay (rate decay = B_l/J_l) is
     exact. With it, v̇ = −decay·v − cj·tanh(v·ivs) (cj = F_cl/J_l) is integrated by RK4 on
-    sub-steps of at most Ts/4 — a smooth function of ts, as the event bisection needs.
+    sub-steps of at most Ts/4, more in the smooth sign's stiff zone (L-stable ones beyond the cap)
+    — a smooth function of ts, as the event bisection needs.
     """
     if cj == 0.0:
         if decay * ts < 1e-9:
@@ -211,7 +209,7 @@ def _gap_state(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: fl
     rate_ts = cj * ivs * ts / _STIFF_STEP
     if rate_ts > n and abs(vl) * ivs < _STIFF_ZONE + (decay * abs(vl) + cj) * ts * ivs:
         if rate_ts > _MAX_STIFF_PARTS:
-            return _sdirk_gap(xl, vl, decay, ts, cj, ivs, Ts)
+            return _sdirk_gap(xl, vl, decay, ts, cj, ivs, n)
         n = int(math.ceil(rate_ts))
     h = ts / n
     x = xl
@@ -316,6 +314,16 @@ def _sdirk_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: floa
         dy0 = dy1
         sa = sb
     return xl, vl, i0, i1, side * y0, side * (dc - vl * Ts)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _contact_rk(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float, xl: float, vl: float,
+                side: float, eps: float, kj: float, dj: float, bj: float, cj: float, ivs: float, implicit: bool
+                ) -> tuple[float, float, float, float, float, float]:
+    """:func:`_sdirk_contact` if ``implicit``, else :func:`_rk4_contact`."""
+    if implicit:
+        return _sdirk_contact(c, k, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+    return _rk4_contact(c, k, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
 
 
 def contact_map(Ts: float, kj: float, dj: float, bj: float) -> NDArray[np.float64]:
@@ -461,20 +469,15 @@ def _separation(cs: NDArray[np.float64], s: float, send: float, Ts: float, xl: f
             lo = mid
     se = s + hi * (send - s)
     # Newton on the actual step length
-    if implicit:
-        xn, vn, i0, i1, pe, dpe = _sdirk_contact(cs, 0, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
-    else:
-        xn, vn, i0, i1, pe, dpe = _rk4_contact(cs, 0, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+    xn, vn, i0, i1, pe, dpe = _contact_rk(cs, 0, s, se, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs, implicit)
     for _ in range(4):
         if abs(pe) <= 1e-15 or dpe == 0.0:
             break
         sn = se - pe / dpe
         if not (s < sn <= send):
             break
-        if implicit:
-            xq, vq, iq0, iq1, pq, dpq = _sdirk_contact(cs, 0, s, sn, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
-        else:
-            xq, vq, iq0, iq1, pq, dpq = _rk4_contact(cs, 0, s, sn, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs)
+        xq, vq, iq0, iq1, pq, dpq = _contact_rk(cs, 0, s, sn, Ts, xl, vl, side, eps, kj, dj, bj, cj, ivs,
+                                                implicit)
         if abs(pq) >= abs(pe):
             break
         se, xn, vn, i0, i1, pe, dpe = sn, xq, vq, iq0, iq1, pq, dpq
