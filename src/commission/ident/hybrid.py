@@ -14,8 +14,8 @@
    noise model chosen by likelihood (:func:`commission.ident.estimator.kalman_fit`); terms kept by
    their Wald statistic on it. When its noise model needs more than 1 % of the torque, again from it
    with every configured term, kept if the BIC prefers it.
-5. ``restarts`` — only when the estimate leaves model error: stages 2–4 again from stiffer starts,
-   the most likely estimate kept.
+5. ``restarts`` — only when the estimate leaves model error: stages 2–4 again from a stiffer start,
+   the more likely estimate kept.
 6. ``check`` — prediction errors, intervals: approximate and why
    (:func:`commission.ident.assess.assess`); the paper's step 5 for the start and the
    result: the dead-zone model simulated open loop, its FRD against the measured one
@@ -63,7 +63,8 @@ _QUANTIZATION_TARGET = 2.5
 #: are tried too: the most likely estimate is kept, so a noisy record only pays their time.
 _RESTART_DISTURBANCE = 0.01
 #: Stiffness factors of the further starts when the first fit leaves model error (:func:`_stiffer_starts`).
-_STIFFER_STARTS = (1.7, 3.0)
+#: One: a second, ×3, never decided a verdict where it ran (20 of 168 family records; bench/results/family.md).
+_STIFFER_STARTS = (1.7,)
 #: Torque disturbance (relative to RMS τ_ref) of the estimate's noise model above which its residual is searched
 #: for a torque periodic in the motor's position (:func:`_cogging_stage`).
 _COGGING_DISTURBANCE = 0.003
@@ -587,7 +588,8 @@ def _stiffer_starts(run: _Run, cell: Any, pem: PemFit) -> tuple[_Run, Any, PemFi
         chosen = replace(chosen, notes=run.notes + chosen.notes)
     else:
         factors = ", ×".join(f"{t['stiffness_factor']:g}" for t in tried[1:])
-        run.notes.append(f"the estimate left model error; stiffer starts (×{factors} K) did not explain the record better"
+        starts = "a stiffer start" if len(tried) == 2 else "stiffer starts"
+        run.notes.append(f"the estimate left model error; {starts} (×{factors} K) did not explain the record better"
                          if factors else "the estimate left model error; no stiffer start keeps the resonance below a "
                          "quarter of the sample rate")
     return chosen, c, p, tried

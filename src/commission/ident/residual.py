@@ -91,7 +91,9 @@ _STIFF_STEP = 2.0
 #: 25, below half an ulp) at both ends of a contact interval: the load friction is then a
 #: constant force there and the interval is stepped exactly (:func:`_exact_contact`).
 _SATURATED = 25.0
-#: Partial steps per sample interval; past them the interval ends where it stands (chattering).
+#: Partial steps per sample interval; past them the interval ends where it stands. Seen only where the
+#: observer had driven the simulation unstable (|x_l| ~1e18 rad: a contact step per part), whose residual
+#: is a plateau whatever the rest of the interval does.
 _MAX_PARTS = 200
 #: Most RK4 sub-steps per interval in the stiff zone of the load's smooth sign. Only parameters far
 #: from any plant need more (F_cl/J_l ≫ the plant's: a load inertia driven to zero by a fit, the
@@ -549,7 +551,7 @@ def _interval(cs: NDArray[np.float64], Ts: float, xl: float, vl: float, side: fl
     guard = 0
     while s < 1.0:
         guard += 1
-        if guard > _MAX_PARTS:  # pathological chattering: the rest of the interval is not integrated
+        if guard > _MAX_PARTS:  # a diverged simulation: the rest of the interval is not integrated
             break
         if side != 0.0:
             xn, vn, i0, i1, send, p1, dp1e, implicit = _contact_step(cs, s, Ts, xl, vl, side, eps, kj, dj, bj,
