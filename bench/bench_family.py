@@ -7,8 +7,9 @@ the resolution and the residual's low-pass from the record (:func:`options_for`)
 (ε within ±0.01° or 2 % of ε, whichever is larger; J_m, J_l, K ±2 %; resonance and
 anti-resonance ±0.5 %), flagged approximate (result.json ``fit.approximate``), silently
 wrong (not flagged, outside tolerance), no result at all (by reason), the coverage of the
-95 % ε interval, the median and 95th-percentile time, breakdowns by class, and the worst
-members. A dated summary is appended to bench/results/family.md.
+95 % ε interval, the median and 95th-percentile time and model evaluations (these do not move
+with the machine's load or hour, where times do), breakdowns by class, and the worst members. A
+dated summary is appended to bench/results/family.md.
 
     python bench/bench_family.py                    # default: the first 50 members, ~30 min (flagged ones are slow)
     python bench/bench_family.py --subset 1         # the whole family (200 members)
@@ -127,6 +128,7 @@ def evaluate_member(m: Member, resolution_from_duration: bool = False) -> dict[s
         return row
     row["time_s"] = time.perf_counter() - t0
     row["error"] = None
+    row["evaluations"] = int(result.evaluations)
     row["stages_s"] = {s.name: round(s.seconds, 3) for s in result.stages}
     row["restarts"] = next((s.detail.get("starts") for s in result.stages if s.name == "restarts"), None)
     row["delays"] = next((s.detail.get("tried") for s in result.stages if s.name == "delay"), None)
@@ -202,6 +204,12 @@ def summary(rows: list[dict[str, Any]], timing_note: str) -> list[str]:
                f"95th percentile {_percentile(times, 95):.2f}, max {max(times, default=math.nan):.2f} "
                f"(results only; every member, failures too: median {_percentile(all_times, 50):.2f}, "
                f"95th percentile {_percentile(all_times, 95):.2f})")
+    counted = [r["evaluations"] for r in results if "evaluations" in r]
+    if counted:
+        # unmoved by the machine's load and hour, where times are not: compares two versions of the identifier
+        out.append(f"model evaluations per identification (the fits' simulations and predictor passes): median "
+                   f"{_percentile(counted, 50):.0f}, 95th percentile {_percentile(counted, 95):.0f}, "
+                   f"sum {sum(counted)}")
     failures = Counter(reason(r["error"]) for r in rows if r["verdict"] == "no_result")
     if failures:
         out.append("no result, by reason:")
@@ -341,6 +349,12 @@ def compare(old_rows: list[dict[str, Any]], new_rows: list[dict[str, Any]]) -> l
     tn = [r["time_s"] for r in common if r["verdict"] != "no_result"]
     out.append(f"  median time {_percentile(to, 50):.2f} → {_percentile(tn, 50):.2f} s, 95th percentile "
                f"{_percentile(to, 95):.2f} → {_percentile(tn, 95):.2f} s")
+    counted = [(old[r["id"]]["evaluations"], r["evaluations"]) for r in common
+               if "evaluations" in r and "evaluations" in old[r["id"]]]
+    if counted:
+        eo, en = zip(*counted)
+        out.append(f"  model evaluations on {len(counted)} members: median "
+                   f"{_percentile(list(eo), 50):.0f} → {_percentile(list(en), 50):.0f}, sum {sum(eo)} → {sum(en)}")
     both = [(old[r["id"]], r) for r in common if "estimate" in r and "estimate" in old[r["id"]]]
     d_eps = [abs(n["estimate"]["epsilon_deg"] - o["estimate"]["epsilon_deg"]) for o, n in both]
     d_rel = [max(abs(n["estimate"][k] / o["estimate"][k] - 1.0) for k in ("J_m", "J_l", "K")) for o, n in both]
