@@ -491,8 +491,8 @@ _POLISH_POINTS = 17
 _POLISH_STARTS = 3
 _PROFILE_FIRST = True
 #: Iterations of each continuation fit at most, and its relative tolerance in cost (they only bring the
-#: estimate into the final fit's basin: the family's 96 end with the same verdicts with 5 as with 8 or 20).
-_CONTINUATION_NFEV = 5
+#: estimate into the final fit's basin; the first 50 of the family end the same with 8 as with 20).
+_CONTINUATION_NFEV = 8
 _CONTINUATION_TOL = 1e-4
 _KALMAN_TOL = 1e-8
 #: Shares of the disturbance on the load the noise model is chosen among: none (a drive's torque noise
