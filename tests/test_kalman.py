@@ -475,6 +475,47 @@ def test_a_fit_stopped_at_its_limit_within_a_tenth_of_a_standard_error_of_its_op
     assert _within_a_step(np.stack((np.full(t.size, np.inf), t), axis=1), A @ best - y) is False
 
 
+def test_a_least_squares_stopped_within_a_tenth_of_a_standard_error_is_at_the_optimum_with_its_jacobian() -> None:
+    """The fits' least squares (finite differences, stopped where the Gauss–Newton step is within a tenth of
+    a standard error) ends at the optimum a least squares with the analytic Jacobian finds, within a fifth of a
+    standard error, and returns the Jacobian there (the covariance's, the intervals')."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from scipy.optimize import least_squares
+
+    from commission.ident.estimator import _covariance, _least_squares
+
+    # a decaying oscillation, z = (ln a, ln b, ln w), through noisy samples
+    rng = np.random.default_rng(7)
+    t = np.linspace(0.0, 2.0, 2000)
+    truth = np.log([1.5, 0.8, 9.0])
+
+    def model(z: np.ndarray) -> np.ndarray:
+        a, b, w = np.exp(z)
+        return a * np.exp(-b * t) * np.sin(w * t)
+
+    def jacobian(z: np.ndarray) -> np.ndarray:
+        a, b, w = np.exp(z)
+        e, s, c = np.exp(-b * t), np.sin(w * t), np.cos(w * t)
+        return np.stack((a * e * s, -a * b * t * e * s, a * w * t * e * c), axis=1)
+
+    y = model(truth) + 0.05 * rng.standard_normal(t.size)
+
+    def residual(z: np.ndarray, remember: bool = True) -> np.ndarray:
+        return model(z) - y
+
+    best = least_squares(residual, truth, jac=jacobian, xtol=1e-15, ftol=1e-15, gtol=1e-15).x
+    sd = np.sqrt(np.diag(_covariance(jacobian(best), residual(best))))
+    start = truth + np.array([0.3, -0.4, 0.08])
+    n = start.size
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        z, res = _least_squares(residual, start, np.ones(n, dtype=bool), np.full(n, -5.0), np.full(n, 5.0),
+                                np.ones(n), np.full(n, 1e-7), pool, 200)
+    assert res.status > 0, res.message
+    assert np.all(np.abs(z - best) <= 0.2 * sd), (z - best) / sd
+    assert np.asarray(res.jac) == pytest.approx(jacobian(z), rel=1e-4, abs=1e-5 * np.abs(jacobian(z)).max())
+
+
 def test_a_predictor_that_breaks_down_is_no_optimum_of_the_noise_model_nor_of_the_gaps_profile() -> None:
     """A likelihood that is NaN (a predictor whose covariance broke down) is never taken for the least: the
     noise model is chosen among the finite ones, and a profile of ε that is NaN throughout gives no start and
