@@ -383,7 +383,8 @@ def _run_all(seed: int, indices: list[int], jobs: int, adapt: bool) -> Iterable[
         for i in indices:
             yield evaluate(seed, i, adapt)
         return
-    pool = multiprocessing.get_context("spawn").Pool(jobs)
+    # each process compiles or loads the kernels before its first timed member, as the sequential run does
+    pool = multiprocessing.get_context("spawn").Pool(jobs, initializer=_warm)
     try:
         yield from pool.imap_unordered(_evaluate, [(seed, i, adapt) for i in indices])
         pool.close()
@@ -391,6 +392,10 @@ def _run_all(seed: int, indices: list[int], jobs: int, adapt: bool) -> Iterable[
         # an interrupted bench (Ctrl-C, SIGTERM) stops its workers: they would run on to their members' ends
         pool.terminate()
         pool.join()
+
+
+def _warm() -> None:
+    evaluate(DEFAULT_SEED, 0, False)
 
 
 def _evaluate(args: tuple[int, int, bool]) -> dict[str, Any]:
@@ -448,7 +453,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{f' (the first 1/{args.subset})' if args.subset > 1 and not args.only else ''}; {timing}; load average "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; identifier commit {_git_commit()}")
     if args.jobs == 1:  # compile/load the kernels outside the timed calls
-        evaluate(DEFAULT_SEED, 0, False)
+        _warm()
     t_start = time.perf_counter()
     rows: list[dict[str, Any]] = []
     out_file = args.out.open("w") if args.out else None
