@@ -478,12 +478,12 @@ def test_a_fit_stopped_at_its_limit_within_a_tenth_of_a_standard_error_of_its_op
 def test_a_least_squares_stopped_within_a_tenth_of_a_standard_error_is_at_the_optimum_with_its_jacobian() -> None:
     """The fits' least squares (finite differences, stopped where the Gauss–Newton step is within a tenth of
     a standard error) ends at the optimum a least squares with the analytic Jacobian finds, within a fifth of a
-    standard error, and returns the Jacobian there (the covariance's, the intervals')."""
-    from concurrent.futures import ThreadPoolExecutor
-
+    standard error, and returns the Jacobian there (the covariance's, the intervals'). With two threads (a
+    point's first column started beside its own evaluation, wasted where the step is rejected) it ends on the
+    same bits and counts the same evaluations as with one."""
     from scipy.optimize import least_squares
 
-    from commission.ident.estimator import _covariance, _least_squares
+    from commission.ident.estimator import _covariance, _least_squares, _Workers
 
     # a decaying oscillation, z = (ln a, ln b, ln w), through noisy samples
     rng = np.random.default_rng(7)
@@ -501,19 +501,39 @@ def test_a_least_squares_stopped_within_a_tenth_of_a_standard_error_is_at_the_op
 
     y = model(truth) + 0.05 * rng.standard_normal(t.size)
 
-    def residual(z: np.ndarray, remember: bool = True) -> np.ndarray:
-        return model(z) - y
+    class Residual:
+        """Counts its evaluations as the fits' objectives do (``calls``, which a fit takes back for a column it
+        started and did not use) and as run (``passes``)."""
 
+        def __init__(self) -> None:
+            self.calls = self.passes = 0
+
+        def __call__(self, z: np.ndarray, remember: bool = True) -> np.ndarray:
+            self.calls += 1
+            self.passes += 1
+            return model(z) - y
+
+    residual = Residual()
     best = least_squares(residual, truth, jac=jacobian, xtol=1e-15, ftol=1e-15, gtol=1e-15).x
     sd = np.sqrt(np.diag(_covariance(jacobian(best), residual(best))))
-    start = truth + np.array([0.3, -0.4, 0.08])
-    n = start.size
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        z, res = _least_squares(residual, start, np.ones(n, dtype=bool), np.full(n, -5.0), np.full(n, 5.0),
-                                np.ones(n), np.full(n, 1e-7), pool, 200)
-    assert res.status > 0, res.message
-    assert np.all(np.abs(z - best) <= 0.2 * sd), (z - best) / sd
-    assert np.asarray(res.jac) == pytest.approx(jacobian(z), rel=1e-4, abs=1e-5 * np.abs(jacobian(z)).max())
+    n = truth.size
+    # the second start is one where trf rejects two steps (10 evaluations, 8 Jacobians)
+    for offset in ([0.3, -0.4, 0.08], [-1.0, 1.0, 0.1]):
+        runs = []
+        for threads in (1, 2):
+            counted = Residual()
+            with _Workers(threads) as pool:
+                z, res = _least_squares(counted, truth + np.array(offset), np.ones(n, dtype=bool),  # type: ignore[arg-type]
+                                        np.full(n, -5.0), np.full(n, 5.0), np.ones(n), np.full(n, 1e-7), pool, 200)
+            assert res.status > 0, res.message
+            assert np.all(np.abs(z - best) <= 0.2 * sd), (z - best) / sd
+            assert np.asarray(res.jac) == pytest.approx(jacobian(z), rel=1e-4, abs=1e-5 * np.abs(jacobian(z)).max())
+            runs.append((z, np.asarray(res.jac), counted, res))
+        (z1, jac1, one, res1), (z2, jac2, two, res2) = runs
+        assert np.array_equal(z1, z2) and np.array_equal(jac1, jac2)
+        assert one.calls == one.passes == two.calls and res1.nfev == res2.nfev
+        # each rejected step's column ran beside it, uncounted
+        assert two.passes - two.calls == res2.nfev - res2.njev
 
 
 def test_a_predictor_that_breaks_down_is_no_optimum_of_the_noise_model_nor_of_the_gaps_profile() -> None:

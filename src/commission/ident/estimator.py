@@ -16,7 +16,9 @@ Every least squares stops once its Gauss–Newton step moves no coordinate by mo
 standard error (:func:`_within_a_step`): what is left is below the record's own uncertainty.
 
 Finite-difference columns run on threads (the compiled kernels release the GIL); each column is
-computed alone, so the result does not depend on the number of threads. No accept/reject rule
+computed alone, so the result does not depend on the number of threads. With two or more, a point's
+first column is started beside the point's own evaluation (whose core would idle otherwise); wasted
+where the step is rejected, and then not counted: the evaluations do not depend on the threads either. No accept/reject rule
 chooses between paths: the answer is a smooth function of the data.
 
 Optional terms (:class:`ModelTerms`): motor Coulomb friction F_cm·tanh(ẋ_m/v_s); load Coulomb
@@ -32,7 +34,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Any
@@ -210,9 +212,17 @@ class _Objective:
         return v
 
 
+class _Workers(ThreadPoolExecutor):
+    """The fits' threads (the compiled predictor and load simulation release the GIL)."""
+
+    def __init__(self, threads: int) -> None:
+        self.threads = max(1, threads)
+        super().__init__(max_workers=self.threads)
+
+
 def _least_squares(obj: _Objective, z0: NDArray[np.float64], free: NDArray[np.bool_], lo: NDArray[np.float64],
                    hi: NDArray[np.float64], scale: NDArray[np.float64], steps: NDArray[np.float64],
-                   pool: ThreadPoolExecutor, max_nfev: int, tol: float = 1e-8,
+                   pool: _Workers, max_nfev: int, tol: float = 1e-8,
                    pair: tuple[int, int] | None = None) -> tuple[NDArray[np.float64], object]:
     """least_squares over the ``free`` coordinates of ``z0`` (the others held). ``pair``: two free log-coordinates
     (ln a, ln b) taken as ln(a + b) and ln(b/a) inside (:func:`_pair_coordinates`); the result (its ``x`` and
@@ -220,33 +230,48 @@ def _least_squares(obj: _Objective, z0: NDArray[np.float64], free: NDArray[np.bo
     idx = np.flatnonzero(free)
     paired = pair is not None and bool(free[pair[0]] and free[pair[1]])
     w0, lo_w, hi_w = _pair_coordinates(z0, lo, hi, pair) if paired else (z0, lo, hi)  # type: ignore[arg-type]
+    h, top = steps[idx], hi_w[idx]
     last: dict[bytes, NDArray[np.float64]] = {}
     jacobian: dict[bytes, NDArray[np.float64]] = {}
+    ahead: dict[bytes, Future[NDArray[np.float64]]] = {}  # the first column's pass, started beside fun's
+    started: list[Future[NDArray[np.float64]]] = []
+    used = 0
 
     def full(y: NDArray[np.float64]) -> NDArray[np.float64]:
         z = w0.copy()
         z[idx] = y
         return _unpaired(z, lo, hi, pair) if paired else z  # type: ignore[arg-type]
 
+    def stepped(y: NDArray[np.float64], i: int) -> NDArray[np.float64]:
+        dy = y.copy()
+        # a forward step, backward at an upper bound
+        dy[i] += h[i] if y[i] + h[i] <= top[i] else -h[i]
+        return dy
+
     def fun(y: NDArray[np.float64]) -> NDArray[np.float64]:
+        ahead.clear()
+        if pool.threads > 1:
+            ahead[y.tobytes()] = pool.submit(obj, full(stepped(y, 0)), False)
+            started.append(ahead[y.tobytes()])
         r = obj(full(y))
         last.clear()
         last[y.tobytes()] = r
         return r
 
     def jac(y: NDArray[np.float64]) -> NDArray[np.float64]:
+        nonlocal used
         f0 = last.get(y.tobytes())
         if f0 is None:
             f0 = fun(y)
-        h = steps[idx]
+        first = ahead.pop(y.tobytes(), None)
+        used += first is not None
 
-        def column(i: int) -> NDArray[np.float64]:
-            dy = y.copy()
-            # a forward step, backward at an upper bound
-            dy[i] += h[i] if y[i] + h[i] <= hi_w[idx][i] else -h[i]
-            return (obj(full(dy), remember=False) - f0) / (dy[i] - y[i])
+        def column(i: int, r: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+            dy = stepped(y, i)
+            return ((obj(full(dy), remember=False) if r is None else r) - f0) / (dy[i] - y[i])
 
-        J = np.stack(list(pool.map(column, range(y.size))), axis=1)
+        columns = pool.map(column, range(0 if first is None else 1, y.size))
+        J = np.stack(([] if first is None else [column(0, first.result())]) + list(columns), axis=1)
         jacobian.clear()
         jacobian[y.tobytes()] = J
         return J
@@ -265,18 +290,25 @@ def _least_squares(obj: _Objective, z0: NDArray[np.float64], free: NDArray[np.bo
     res = least_squares(fun, np.clip(w0[idx], lo_w[idx], hi_w[idx]), jac=jac, bounds=(lo_w[idx], hi_w[idx]),
                         method="trf", x_scale=scale[idx], max_nfev=max_nfev, ftol=tol, xtol=_KALMAN_TOL,
                         callback=settled)
+    wait(started)  # (a pass still running on a rejected point: done before its count is taken back)
+    obj.calls -= len(started) - used
     if res.status == _STOPPED_BY_CALLBACK:
         res.status, res.message = _SETTLED, "the Gauss–Newton step is within a tenth of a standard error"
     z = full(res.x)
     if paired:
-        # ∂r/∂z = ∂r/∂y·∂y/∂z: y = ln(a + b) moves with a's and b's shares of the sum, ln(b/a) with −1 and +1
-        a, b = pair  # type: ignore[misc]
-        dy = np.eye(z.size)
-        wa = 1.0 / (1.0 + math.exp(z[b] - z[a]))
-        dy[a, a], dy[a, b], dy[b, a], dy[b, b] = wa, 1.0 - wa, -1.0, 1.0
-        res.jac = np.asarray(res.jac) @ dy[np.ix_(idx, idx)]
-        res.x = z[idx]
+        _unpaired_result(res, z, idx, pair)  # type: ignore[arg-type]
     return z, res
+
+
+def _unpaired_result(res: Any, z: NDArray[np.float64], idx: NDArray[np.intp], pair: tuple[int, int]) -> None:
+    """A least squares' result in :func:`_pair_coordinates` (``res.x``, ``res.jac``) put in ``z``'s coordinates:
+    ∂r/∂z = ∂r/∂y·∂y/∂z, y = ln(a + b) moving with a's and b's shares of the sum, ln(b/a) with −1 and +1."""
+    a, b = pair
+    dy = np.eye(z.size)
+    wa = 1.0 / (1.0 + math.exp(z[b] - z[a]))
+    dy[a, a], dy[a, b], dy[b, a], dy[b, b] = wa, 1.0 - wa, -1.0, 1.0
+    res.jac = np.asarray(res.jac) @ dy[np.ix_(idx, idx)]
+    res.x = z[idx]
 
 
 def _pair_coordinates(z: NDArray[np.float64], lo: NDArray[np.float64], hi: NDArray[np.float64],
@@ -380,7 +412,7 @@ def fit(problem: ResidualProblem, start: TwoMassParameters, epsilon_rad: float, 
         # (a diverged start can be finite at 1e288: a plateau there overflows the least squares' sums, 22:185)
         obj.bad = min(max(obj.bad, 2.0 * float(np.max(np.abs(v0), initial=0.0))), _PLATEAU_MAX)
     lo_a, hi_a, scale_a, steps_a = (np.array(v, dtype=float) for v in (lo, hi, scale, steps))
-    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+    with _Workers(threads) as pool:
         if hold_epsilon:
             held = np.ones(z.size, dtype=bool)
             held[6] = False
@@ -771,7 +803,7 @@ def kalman_fit(problem: KalmanProblem, start: PemFit, *, epsilon_max_rad: float,
     is taken by the next from the same coordinates (a :attr:`Hedge.START` fit, then the :attr:`Hedge.NEAR`
     fit from the same start, repeats none of it).
     """
-    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+    with _Workers(threads) as pool:
         run = _KalmanFit(problem, start, epsilon_max_rad, pool, max_nfev, hedge)
         obj, z, res = run.continuation(keep_all, memo)
         obj, z, res = run.sharpened(obj, z, res)
@@ -800,7 +832,7 @@ def kalman_resettled(problem: KalmanProblem, estimate: PemFit, *, epsilon_max_ra
     much better, and is then judged against other fits at a disadvantage (22:171: 1.35 → 1.08 per
     prediction error)."""
     before = _likelihood(estimate)
-    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+    with _Workers(threads) as pool:
         run = _KalmanFit(problem, estimate, epsilon_max_rad, pool, max_nfev, Hedge.NONE)
         if run.z[6] < EPSILON_ZERO_DEG:
             run.z[6], run.free[6] = 0.0, False
@@ -855,7 +887,7 @@ class _KalmanFit:
     """One :func:`kalman_fit`: the coordinates' start, bounds and scales, the coordinates held, the
     thread pool, and the predictor evaluations spent (``calls``)."""
 
-    def __init__(self, problem: KalmanProblem, start: PemFit, epsilon_max_rad: float, pool: ThreadPoolExecutor,
+    def __init__(self, problem: KalmanProblem, start: PemFit, epsilon_max_rad: float, pool: _Workers,
                  max_nfev: int, hedge: Hedge) -> None:
         self.problem, self.terms, self.ref = problem, start.terms, problem.torque_rms_nm
         self.pool, self.max_nfev, self.hedge = pool, max_nfev, hedge
