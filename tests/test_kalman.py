@@ -523,8 +523,9 @@ def test_a_least_squares_stopped_within_a_tenth_of_a_standard_error_is_at_the_op
         for threads in (1, 2):
             counted = Residual()
             with _Workers(threads) as pool:
-                z, res = _least_squares(counted, truth + np.array(offset), np.ones(n, dtype=bool),  # type: ignore[arg-type]
-                                        np.full(n, -5.0), np.full(n, 5.0), np.ones(n), np.full(n, 1e-7), pool, 200)
+                z, res = _least_squares(counted, truth + np.array(offset),  # type: ignore[arg-type]
+                                        np.ones(n, dtype=bool), np.full(n, -5.0), np.full(n, 5.0), np.ones(n),
+                                        np.full(n, 1e-7), pool, 200)
             assert res.status > 0, res.message
             assert np.all(np.abs(z - best) <= 0.2 * sd), (z - best) / sd
             assert np.asarray(res.jac) == pytest.approx(jacobian(z), rel=1e-4, abs=1e-5 * np.abs(jacobian(z)).max())

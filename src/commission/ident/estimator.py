@@ -17,9 +17,9 @@ standard error (:func:`_within_a_step`): what is left is below the record's own 
 
 Finite-difference columns run on threads (the compiled kernels release the GIL); each column is
 computed alone, so the result does not depend on the number of threads. With two or more, a point's
-first column is started beside the point's own evaluation (whose core would idle otherwise); wasted
-where the step is rejected, and then not counted: the evaluations do not depend on the threads either. No accept/reject rule
-chooses between paths: the answer is a smooth function of the data.
+first column is started beside the point's own evaluation (whose core would idle otherwise); where the
+step is rejected it is wasted and not counted, so the evaluations do not depend on the threads either.
+No accept/reject rule chooses between paths: the answer is a smooth function of the data.
 
 Optional terms (:class:`ModelTerms`): motor Coulomb friction F_cm·tanh(ẋ_m/v_s); load Coulomb
 friction F_cl·tanh(ẋ_l/v_s); a first-order current loop T_c·τ̇ = τ_ref − τ. A term is kept when its
@@ -301,8 +301,9 @@ def _least_squares(obj: _Objective, z0: NDArray[np.float64], free: NDArray[np.bo
 
 
 def _unpaired_result(res: Any, z: NDArray[np.float64], idx: NDArray[np.intp], pair: tuple[int, int]) -> None:
-    """A least squares' result in :func:`_pair_coordinates` (``res.x``, ``res.jac``) put in ``z``'s coordinates:
-    ∂r/∂z = ∂r/∂y·∂y/∂z, y = ln(a + b) moving with a's and b's shares of the sum, ln(b/a) with −1 and +1."""
+    """A least squares' result in :func:`_pair_coordinates` (``res.x``, ``res.jac``) put in ``z``'s
+    coordinates: ∂r/∂z = ∂r/∂y·∂y/∂z, y = ln(a + b) moving with a's and b's shares of the sum, ln(b/a)
+    with −1 and +1."""
     a, b = pair
     dy = np.eye(z.size)
     wa = 1.0 / (1.0 + math.exp(z[b] - z[a]))
