@@ -60,6 +60,25 @@ def test_at_the_true_parameters_the_prediction_errors_are_the_encoders_noise(fs:
     assert wrong_gap is not None and _rms(wrong_gap.normalized) > 2 * _rms(at_truth.normalized)
 
 
+def test_read_only_and_writable_records_share_the_predictors_one_compiled_signature() -> None:
+    """A record read from a log (read-only arrays) and one simulated here (writable) give the same prediction
+    errors through one compiled predictor: numba compiles once per signature, and writability is part of it
+    (before, six signatures of the predictor were compiled in a suite run, about 3 s each per process)."""
+    from commission.ident import kalman
+
+    fs = 2000.0
+    tau, r = _record(fs, 1.0)
+    frozen = [a.copy() for a in (tau, r.motor_position, r.load_position)]
+    for a in frozen:
+        a.flags.writeable = False
+    runs = [innovations(kalman_problem(t, ym, fs, load_position=yl), REFERENCE_PLANT, math.radians(0.4),
+                        process_noise_nm=1e-3) for t, ym, yl in ((tau, r.motor_position, r.load_position), frozen)]
+    assert runs[0] is not None and runs[1] is not None
+    assert np.array_equal(runs[0].error, runs[1].error)
+    assert tau.flags.writeable and r.motor_position.flags.writeable  # the caller's arrays left as they were
+    assert len(kalman._filter.signatures) == 1, kalman._filter.signatures
+
+
 def test_a_record_cut_from_a_running_axis_is_predicted_from_its_first_samples_speed() -> None:
     # 1 s into the reference run the motor turns at ~9 rad/s: a record that starts there (a CSV cut from a
     # longer log) is no experiment from rest. At the true parameters its first 1,300 prediction errors were

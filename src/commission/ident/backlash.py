@@ -35,6 +35,7 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from commission.exceptions import IdentificationError
+from commission.ident.compiled import read_only
 from commission.ident.twomass import TwoMassParameters
 
 __all__ = [
@@ -399,7 +400,7 @@ def _prepare(params: TwoMassParameters, epsilon_rad: float, torque_ref: ArrayLik
              sample_rate_hz: float, delay_samples: int,
              initial: DeadzoneState | None) -> tuple[list[float], NDArray[np.float64], NDArray[np.float64], DeadzoneState]:
     """Validate the arguments: (parameters as floats, torque, initial state vector, initial)."""
-    tau = np.ascontiguousarray(torque_ref, dtype=np.float64)
+    tau = read_only(torque_ref)  # (one compiled signature, whatever the caller passes)
     if tau.ndim != 1 or tau.size == 0:
         raise IdentificationError(f"torque_ref must be a non-empty 1-D array, got shape {tau.shape}")
     if not np.all(np.isfinite(tau)):

@@ -7,16 +7,31 @@ decrements per call). Functions that allocate nothing need no reference counts: 
 compiles them without the runtime (numba's ``_nrt`` option, where this numba has it; numba refuses to
 compile an allocation there, so a function that needs the runtime fails at compile time, not later).
 The results are the same bits either way.
+
+numba compiles a function once per signature, and an array's signature includes whether it is writable: a
+record read from a log, a kept residual and a fresh array would each compile the predictor again (about
+3 s a signature, in every process without a cache of it). :func:`read_only` gives the compiled functions
+one kind of array.
 """
 
 from __future__ import annotations
 
 import numba.core.cpu
+import numpy as np
 from numba import njit
+from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["per_sample"]
+__all__ = ["per_sample", "read_only"]
 
 _WITHOUT_RUNTIME = {"_nrt": False} if hasattr(numba.core.cpu.CPUTargetOptions, "_nrt") else {}
 
 #: Decorator of a compiled function that allocates nothing and is called once per sample (or more).
 per_sample = njit(cache=True, nogil=True, error_model="numpy", **_WITHOUT_RUNTIME)
+
+
+def read_only(a: ArrayLike, dtype: type = np.float64) -> NDArray:
+    """``a`` as a C-contiguous, read-only array of ``dtype`` (a view where it already is one: nothing
+    copied, the caller's array left writable)."""
+    v = np.ascontiguousarray(a, dtype=dtype).view()
+    v.flags.writeable = False
+    return v

@@ -37,7 +37,7 @@ from numba import njit
 from numpy.typing import NDArray
 from scipy.linalg import expm
 
-from .compiled import per_sample
+from .compiled import per_sample, read_only
 from .consistency import InitialMotion, initial_motion
 from .twomass import TwoMassParameters
 
@@ -730,7 +730,9 @@ def innovations(problem: KalmanProblem, params: TwoMassParameters, epsilon_rad: 
     jump[1], jump[3] = -params.D / params.J_m, params.D / params.J_l
     e = np.zeros((pr.motor_position.size - 1, pr.outputs))
     S = np.ones_like(e)
-    events = _filter(pr.torque_ref, pr.torque_variance, pr.motor_position, yl, pr.motor_friction, pr.measured, float(coulomb_motor_nm),
+    tau, tvar, y, yl, fm = (read_only(a) for a in (pr.torque_ref, pr.torque_variance, pr.motor_position, yl,
+                                                   pr.motor_friction))
+    events = _filter(tau, tvar, y, yl, fm, read_only(pr.measured, np.bool_), float(coulomb_motor_nm),
                      float(coulomb_load_nm), float(epsilon_rad), Ts, model.Phi, model.Gam,
                      model.PhiH, model.GamH, model.V, model.lam, model.Vi, model.B, jump, Qm, R, x0, P0, e, S,
                      sigma_points)

@@ -58,7 +58,7 @@ from scipy.interpolate import CubicSpline
 from scipy.signal import butter, sosfilt_zi, sosfiltfilt
 
 from ..exceptions import IdentificationError
-from .compiled import per_sample
+from .compiled import per_sample, read_only
 from .consistency import InitialMotion, initial_motion
 
 __all__ = [
@@ -966,7 +966,7 @@ def lagged_torque(torque_ref: NDArray[np.float64], sample_rate_hz: float,
     # τ_{k+1} = e·τ_k + (1 − e)·u_k, τ_0 = u_0 (compiled; the arithmetic of
     # scipy.signal.lfilter([0, 1 − e], [1, −e], u, zi=[u_0]) and of the array expression
     # 0.5·(u[:-2] + u[1:-1]) + g1·d[:-2] + g2·d[1:-1], d = τ − u, operation for operation)
-    return _lagged_torque(np.ascontiguousarray(u), e, g1, g2)
+    return _lagged_torque(read_only(u), e, g1, g2)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
