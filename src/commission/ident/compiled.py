@@ -30,8 +30,8 @@ per_sample = njit(cache=True, nogil=True, error_model="numpy", **_WITHOUT_RUNTIM
 
 
 def read_only(a: ArrayLike, dtype: type = np.float64) -> NDArray:
-    """``a`` as a C-contiguous, read-only array of ``dtype`` (a view where it already is one: nothing
-    copied, the caller's array left writable)."""
+    """``a`` as a C-contiguous, read-only array of ``dtype``: a read-only view of ``a`` itself where it is
+    one already (nothing copied), else of a copy; ``a``'s own flags are left as they were."""
     v = np.ascontiguousarray(a, dtype=dtype).view()
     v.flags.writeable = False
     return v
