@@ -8,6 +8,12 @@ compiles them without the runtime (numba's ``_nrt`` option, where this numba has
 compile an allocation there, so a function that needs the runtime fails at compile time, not later).
 The results are the same bits either way.
 
+A call between compiled functions passes each array as its 7–11 fields (pointer, shape, strides, ...): the
+predictor's one-sample prediction, 13 arguments, cost more to call than to compute. :data:`inlined` marks a
+function numba copies into its callers instead; a loop compiled with :data:`per_sample` that inlines its
+per-sample steps runs as one function, without reference counts (inlined into a function with the runtime,
+each array the inlined code names would be counted again).
+
 numba compiles a function once per signature, and an array's signature includes whether it is writable: a
 record read from a log, a kept residual and a fresh array would each compile the predictor again (about
 3 s a signature, in every process without a cache of it). :func:`read_only` gives the compiled functions
@@ -21,12 +27,14 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["per_sample", "read_only"]
+__all__ = ["inlined", "per_sample", "read_only"]
 
 _WITHOUT_RUNTIME = {"_nrt": False} if hasattr(numba.core.cpu.CPUTargetOptions, "_nrt") else {}
 
 #: Decorator of a compiled function that allocates nothing and is called once per sample (or more).
 per_sample = njit(cache=True, nogil=True, error_model="numpy", **_WITHOUT_RUNTIME)
+#: Decorator of a compiled function that allocates nothing, inlined into the :data:`per_sample` loops that call it.
+inlined = njit(cache=True, nogil=True, error_model="numpy", inline="always", **_WITHOUT_RUNTIME)
 
 
 def read_only(a: ArrayLike, dtype: type = np.float64) -> NDArray:

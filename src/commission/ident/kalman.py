@@ -37,7 +37,7 @@ from numba import njit
 from numpy.typing import NDArray
 from scipy.linalg import expm
 
-from .compiled import per_sample, read_only
+from .compiled import inlined, per_sample, read_only
 from .consistency import InitialMotion, initial_motion
 from .twomass import TwoMassParameters
 
@@ -437,7 +437,7 @@ def _set_valued_friction(xe: NDArray[np.float64], Gam: NDArray[np.float64], m: i
     return f
 
 
-@per_sample
+@inlined
 def _predict(x: NDArray[np.float64], tk: float, fmk: float, Fcm: float, Fcl: float, eps: float, Ts: float,
              Phi: NDArray[np.float64], Gam: NDArray[np.float64], PhiH: NDArray[np.float64], GamH: NDArray[np.float64],
              u: NDArray[np.float64], xe: NDArray[np.float64]) -> tuple[int, bool]:
@@ -493,7 +493,9 @@ def _filter(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.f
             Bc: NDArray[np.float64], jump: NDArray[np.float64], Q: NDArray[np.float64], R: NDArray[np.float64],
             x0: NDArray[np.float64], P0: NDArray[np.float64], e: NDArray[np.float64], S_out: NDArray[np.float64],
             sigma_points: bool) -> int:
-    N = y.size
+    """The predictor over the record from (``x0``, ``P0``): prediction errors into ``e``, their variances
+    into ``S_out`` (both (N−1, outputs)); returns the contact events located inside samples. Allocates the
+    state and scratch; the loop is :func:`_loop`'s."""
     n = x0.size
     nout = e.shape[1]
     x = x0.copy()
@@ -513,6 +515,27 @@ def _filter(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.f
     col = np.empty(n)
     cw = np.empty((4 + n, n), dtype=np.complex128)
     rw = np.empty((1 + 2 * n, n))
+    return _loop(tau, tvar, y, yl, fm, measured, Fcm, Fcl, eps, Ts, Phi, Gam, PhiH, GamH, V, lam, Vi, Bc, jump, Q, R,
+                 e, S_out, sigma_points, x, P, T, Msw, xe, u, g, P_last, G_st, S_st, xs, xes, Fs, Pc, col, cw, rw)
+
+
+@per_sample  # (the per-sample steps inlined into it: one function, no calls, no reference counts)
+def _loop(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.float64], yl: NDArray[np.float64],
+          fm: NDArray[np.float64], measured: NDArray[np.bool_], Fcm: float, Fcl: float, eps: float, Ts: float,
+          Phi: NDArray[np.float64], Gam: NDArray[np.float64], PhiH: NDArray[np.float64], GamH: NDArray[np.float64],
+          V: NDArray[np.complex128], lam: NDArray[np.complex128], Vi: NDArray[np.complex128],
+          Bc: NDArray[np.float64], jump: NDArray[np.float64], Q: NDArray[np.float64], R: NDArray[np.float64],
+          e: NDArray[np.float64], S_out: NDArray[np.float64], sigma_points: bool, x: NDArray[np.float64],
+          P: NDArray[np.float64], T: NDArray[np.float64], Msw: NDArray[np.float64], xe: NDArray[np.float64],
+          u: NDArray[np.float64], g: NDArray[np.float64], P_last: NDArray[np.float64], G_st: NDArray[np.float64],
+          S_st: NDArray[np.float64], xs: NDArray[np.float64], xes: NDArray[np.float64], Fs: NDArray[np.float64],
+          Pc: NDArray[np.float64], col: NDArray[np.float64], cw: NDArray[np.complex128],
+          rw: NDArray[np.float64]) -> int:
+    """:func:`_filter`'s loop over the samples (the state ``x`` and covariance ``P`` from their start; the
+    other arrays after ``x``: its scratch); returns the contact events located inside samples."""
+    N = y.size
+    n = x.size
+    nout = e.shape[1]
     steady = False
     events = 0
     for k in range(N - 1):
@@ -560,7 +583,7 @@ def _filter(tau: NDArray[np.float64], tvar: NDArray[np.float64], y: NDArray[np.f
     return events
 
 
-@per_sample
+@inlined
 def _torque_noise(P: NDArray[np.float64], Gam: NDArray[np.float64], m: int, var: float) -> None:
     """P ← P + var·g·gᵀ: a torque reference of variance ``var`` [N·m²] held over the sample (g: mode ``m``'s Γ's
     τ_ref column)."""
@@ -570,7 +593,7 @@ def _torque_noise(P: NDArray[np.float64], Gam: NDArray[np.float64], m: int, var:
             P[i, j] += var * Gam[m, i, 0] * Gam[m, j, 0]
 
 
-@per_sample
+@inlined
 def _propagate(Phi: NDArray[np.float64], Msw: NDArray[np.float64], switch: bool, m: int, P: NDArray[np.float64],
                Q: NDArray[np.float64], T: NDArray[np.float64]) -> None:
     """P ← F·P·Fᵀ + Q_m, symmetric, F the saltated flow ``Msw`` across a switch, else mode ``m``'s Φ (T:
@@ -643,7 +666,7 @@ def _sigma_predict(x: NDArray[np.float64], P: NDArray[np.float64], tk: float, fm
     return m0, events
 
 
-@per_sample
+@inlined
 def _update(x: NDArray[np.float64], P: NDArray[np.float64], y1: float, yl1: float, R: NDArray[np.float64],
             e: NDArray[np.float64], S_out: NDArray[np.float64], k: int, S_st: NDArray[np.float64],
             G_st: NDArray[np.float64], g: NDArray[np.float64]) -> None:
@@ -673,7 +696,7 @@ def _update(x: NDArray[np.float64], P: NDArray[np.float64], y1: float, yl1: floa
                 P[i, j] -= g[i] * g[j] / S
 
 
-@per_sample
+@inlined
 def _settled(P: NDArray[np.float64], P_last: NDArray[np.float64]) -> bool:
     """Whether ``P`` is where ``P_last`` was, to ``_STEADY`` of its size; ``P_last`` ← ``P``."""
     n = P.shape[0]
