@@ -58,7 +58,7 @@ from scipy.interpolate import CubicSpline
 from scipy.signal import butter, sosfilt_zi, sosfiltfilt
 
 from ..exceptions import IdentificationError
-from .compiled import per_sample, read_only
+from .compiled import inlined, per_sample, read_only
 from .consistency import InitialMotion, initial_motion
 
 __all__ = [
@@ -537,7 +537,7 @@ def _gap_step(cs: NDArray[np.float64], s: float, Ts: float, xl: float, vl: float
     return xl, vl, s + hi * (1.0 - s), 1.0 if zh > 0.0 else -1.0, 1
 
 
-@per_sample  # called at every sample; its helpers are inlined into it
+@inlined  # (into the simulation's loop, as its helpers are into it)
 def _interval(cs: NDArray[np.float64], Ts: float, xl: float, vl: float, side: float, eps: float, kj: float, dj: float,
               bj: float, cj: float, ivs: float, cm: NDArray[np.float64], friction: bool
               ) -> tuple[float, float, float, float, float, int]:
@@ -608,6 +608,23 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
     I1 = np.zeros(m)
     xl_out = np.empty(m + 1)
     vl_out = np.empty(m + 1)
+    E = np.zeros(m - 1)
+    EL = np.zeros(m + 1)
+    events = _load_loop(c, Ts, J_l, B_l, K, D, eps, xl0, vl0, F_l, ivs, cm, friction, motor_part, gain, lp, load_meas,
+                        load_gain, I0, I1, xl_out, vl_out, E, EL, np.empty((1, 4)))
+    return I0, I1, xl_out, vl_out, events, E, EL
+
+
+@per_sample  # (the interval's steps inlined into it: one function, no calls, no reference counts)
+def _load_loop(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K: float, D: float, eps: float, xl0: float,
+               vl0: float, F_l: float, ivs: float, cm: NDArray[np.float64], friction: bool,
+               motor_part: NDArray[np.float64], gain: float, lp: NDArray[np.float64], load_meas: NDArray[np.float64],
+               load_gain: float, I0: NDArray[np.float64], I1: NDArray[np.float64], xl_out: NDArray[np.float64],
+               vl_out: NDArray[np.float64], E: NDArray[np.float64], EL: NDArray[np.float64],
+               cs: NDArray[np.float64]) -> int:
+    """:func:`_simulate_load`'s loop over the sample intervals, into its outputs (``cs``: scratch); returns the
+    events located."""
+    m = c.shape[0]
     kj = K / J_l
     dj = D / J_l
     bj = B_l / J_l
@@ -617,12 +634,9 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
     z = _motor(c, 0, 0.0)[0] - xl
     side = 1.0 if eps <= 0.0 or z > eps else (-1.0 if z < -eps else 0.0)
     events = 0
-    E = np.zeros(m - 1)
-    EL = np.zeros(m + 1)
     has_load = load_meas.shape[0] == m + 1
     w1 = 0.0
     w2 = 0.0
-    cs = np.empty((1, 4))
     offset = 0.0  # corrections applied so far [rad]: the load sits at xl + offset
     ramp = 0.0    # correction applied over the current interval [rad]
     for k in range(m):
@@ -650,7 +664,7 @@ def _simulate_load(c: NDArray[np.float64], Ts: float, J_l: float, B_l: float, K:
             ramp -= load_gain * EL[k + 1]
     xl_out[m] = xl + offset
     vl_out[m] = vl
-    return I0, I1, xl_out, vl_out, events, E, EL
+    return events
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
