@@ -727,10 +727,10 @@ def _announce_compilation(term: _Terminal) -> Iterator[None]:
                 from . import jitcache
 
                 if jitcache.uncached_reason:
-                    term.say(f"compiling the numerical kernels (numba, about half a minute): {jitcache.uncached_reason}, "
+                    term.say(f"compiling the numerical kernels (numba, about a minute): {jitcache.uncached_reason}, "
                              "so on every run")
                 else:
-                    term.say("compiling the numerical kernels (numba; once after an install, about half a minute; "
+                    term.say("compiling the numerical kernels (numba; once after an install, about a minute; "
                              "`commission --warm-cache` does it ahead)")
 
         def on_end(self, ev: event.Event) -> None:

@@ -12,7 +12,9 @@ A call between compiled functions passes each array as its 7–11 fields (pointe
 predictor's one-sample prediction, 13 arguments, cost more to call than to compute. :data:`inlined` marks a
 function numba copies into its callers instead; a loop compiled with :data:`per_sample` that inlines its
 per-sample steps runs as one function, without reference counts (inlined into a function with the runtime,
-each array the inlined code names would be counted again).
+each array the inlined code names would be counted again). numba compiles every inlined copy again, and
+the copies of copies: inline what runs at every sample and keep what runs only at events called (the
+compile time grows with the copies; a pass's time does not fall with them).
 
 numba compiles a function once per signature, and an array's signature includes whether it is writable: a
 record read from a log, a kept residual and a fresh array would each compile the predictor again (about

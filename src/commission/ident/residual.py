@@ -169,7 +169,7 @@ def _tanh_root(a: float, b: float, ivs: float, r: float) -> float:
     return v
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@per_sample  # (called, not inlined: taken rarely, and each inlined copy is compiled again)
 def _sdirk_gap(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: float,
                n: int) -> tuple[float, float]:
     """:func:`_gap_state` by the L-stable two-stage SDIRK method on n equal sub-steps: each stage is
@@ -229,6 +229,14 @@ def _gap_state(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: fl
     return x, v
 
 
+@per_sample
+def _gap_state_at_event(xl: float, vl: float, decay: float, ts: float, cj: float, ivs: float,
+                        Ts: float) -> tuple[float, float]:
+    """:func:`_gap_state`, called: the gap step's evaluations that locate a contact (at events only) share
+    one compiled copy instead of three inlined ones."""
+    return _gap_state(xl, vl, decay, ts, cj, ivs, Ts)
+
+
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _accel(xm: float, vm: float, xl: float, vl: float, side: float, eps: float,
            kj: float, dj: float, bj: float, cj: float, ivs: float) -> tuple[float, float]:
@@ -278,7 +286,7 @@ def _rk4_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float,
     return xn, vn, i0, i1, pe, dpe
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@per_sample  # (called, not inlined: taken rarely, and each inlined copy is compiled again)
 def _sdirk_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float, xl: float, vl: float,
                    side: float, eps: float, kj: float, dj: float, bj: float, cj: float, ivs: float
                    ) -> tuple[float, float, float, float, float, float]:
@@ -318,7 +326,7 @@ def _sdirk_contact(c: NDArray[np.float64], k: int, s: float, se: float, Ts: floa
     return xl, vl, i0, i1, side * y0, side * (dc - vl * Ts)
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@per_sample  # (called, not inlined: taken rarely, and each inlined copy is compiled again)
 def _contact_rk(c: NDArray[np.float64], k: int, s: float, se: float, Ts: float, xl: float, vl: float,
                 side: float, eps: float, kj: float, dj: float, bj: float, cj: float, ivs: float, implicit: bool
                 ) -> tuple[float, float, float, float, float, float]:
@@ -519,7 +527,7 @@ def _gap_step(cs: NDArray[np.float64], s: float, Ts: float, xl: float, vl: float
     for it in range(_BISECT_ITERATIONS + 1):
         mid = hi if it == 0 else 0.5 * (lo + hi)
         xq, _ = _motor(cs, 0, s + mid * (1.0 - s))
-        xlq, _ = _gap_state(xl, vl, bj, mid * h, cj, ivs, Ts)
+        xlq, _ = _gap_state_at_event(xl, vl, bj, mid * h, cj, ivs, Ts)
         zq = xq - xlq
         if zq >= eps or zq <= -eps:
             hi = mid
@@ -531,13 +539,13 @@ def _gap_step(cs: NDArray[np.float64], s: float, Ts: float, xl: float, vl: float
         else:
             lo = mid
     if zh == 0.0:
-        xl, vl = _gap_state(xl, vl, bj, hit * h, cj, ivs, Ts)
+        xl, vl = _gap_state_at_event(xl, vl, bj, hit * h, cj, ivs, Ts)
         return xl, vl, s + hit * (1.0 - s), 0.0, 0
-    xl, vl = _gap_state(xl, vl, bj, hi * h, cj, ivs, Ts)
+    xl, vl = _gap_state_at_event(xl, vl, bj, hi * h, cj, ivs, Ts)
     return xl, vl, s + hi * (1.0 - s), 1.0 if zh > 0.0 else -1.0, 1
 
 
-@inlined  # (into the simulation's loop, as its helpers are into it)
+@inlined  # (into the simulation's loop, as the steps it takes at every sample are into it)
 def _interval(cs: NDArray[np.float64], Ts: float, xl: float, vl: float, side: float, eps: float, kj: float, dj: float,
               bj: float, cj: float, ivs: float, cm: NDArray[np.float64], friction: bool
               ) -> tuple[float, float, float, float, float, int]:
